@@ -1,0 +1,288 @@
+"""Configuration: frozen, hashable dataclasses holding the paper's and the toolbox's defaults.
+
+This is the one place where a default value lives. Every stage function takes the dataclass it
+needs (static under ``jit``). Sources: ``shared/reference/mdgps-toolbox.md`` (toolbox numerics),
+``shared/reference/gmr-method.md`` (paper, authors' Jaco setup, project decisions).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+# ---------------------------------------------------------------------------------------------
+# Simulation
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated Jaco 2 plant.
+
+    Attributes:
+      scene: MJCF scene name in ``jaco_mjcf/`` (``"reach"`` → ``jaco_mjcf/reach.xml``) or a path
+        to an MJCF file.
+      control_dt: duration of one control step (s); the paper runs at 20 Hz.
+      substeps: physics steps per control step; the physics timestep is control_dt / substeps.
+      gravity_compensation: the plant adds the gravity torques (as the Jaco's torque mode does).
+      clip_torques: saturate commanded torques at the actuator peak torques (ctrlrange).
+      backend: ``"mjx"`` (MJX, impl='jax'), ``"mujoco"`` (C MuJoCo on the host through
+        ``jax.pure_callback``) or ``"auto"`` (mjx where JAX has a GPU, else mujoco).
+    """
+
+    scene: str = "reach"
+    control_dt: float = 0.05
+    substeps: int = 10
+    gravity_compensation: bool = True
+    clip_torques: bool = True
+    backend: str = "auto"
+
+    @property
+    def timestep(self) -> float:
+        return self.control_dt / self.substeps
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Exploration noise, toolbox rule (mdgps-toolbox.md §6)."""
+
+    smooth: bool = True
+    sigma: float = 2.0  # Gaussian filter std in time steps (the toolbox's "smooth_noise_var")
+    renormalize: bool = True
+    truncate: float = 4.0
+
+
+# ---------------------------------------------------------------------------------------------
+# Task and cost
+
+# Kinova actuator angles (rad) of the paper-era Jaco experiment (gmr-method.md §2).
+REACH_INITIAL_A = (-0.2046, 3.4193, 1.2257, 4.449, 2.0378, 2.1919)
+REACH_INITIAL_B = (-0.2046, 2.419, 1.2255, 4.449, 2.038, 2.1919)
+REACH_TARGET = (-0.7046, 4.1905, 1.4259, 4.4488, 2.0376, 2.1919)
+JACO_GAINS = (7.09, 2.3, 1.5, 1.2, 1.8, 0.1)
+
+
+@dataclass(frozen=True)
+class CostConfig:
+    """Reach cost (mdgps-toolbox.md §5, weights after gmr-method.md §2).
+
+    ℓ_t = ½ Σ wu u² + state term + final-state term.
+
+    Attributes:
+      action_weight: wu per joint (the authors': 5e-3 / JACO_GAINS).
+      state_wp: per-entry weights of the joint-state term over x = [q, q̇] (angles 1, velocities 0).
+      state_l1, state_l2, state_alpha: l1/l2/α of the joint-state term.
+      state_ramp: ramp of the joint-state term: "constant", "linear", "quadratic", "final_only".
+      final_wp: weights of an extra final-only term on [q, q̇] (velocities count, so the arm stops).
+      final_l1, final_l2, final_alpha: its l1/l2/α.
+      final_multiplier: wp_final_multiplier of the final term.
+      ee_weight: weight of an end-effector position (l2) term towards the target's end-effector
+        position; 0 disables it.
+    """
+
+    action_weight: tuple[float, ...] = tuple(5e-3 / g for g in JACO_GAINS)
+    state_wp: tuple[float, ...] = (1.0,) * 6 + (0.0,) * 6
+    state_l1: float = 0.0
+    state_l2: float = 1.0
+    state_alpha: float = 1e-2
+    state_ramp: str = "constant"
+    final_wp: tuple[float, ...] = (1.0,) * 6 + (0.1,) * 6
+    final_l1: float = 0.0
+    final_l2: float = 1.0
+    final_alpha: float = 1e-5
+    final_multiplier: float = 10.0
+    ee_weight: float = 0.0
+
+
+SCENARIOS = {"A": (REACH_INITIAL_A,), "B": (REACH_INITIAL_B,), "AB": (REACH_INITIAL_A, REACH_INITIAL_B)}
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """Reach task: conditions (initial joint angles, at rest), target, horizon.
+
+    Attributes:
+      scenario: "A", "B" or "AB" (A and B as two conditions).
+      T: horizon in control steps (80 = 4 s at 20 Hz).
+      target: target joint angles (target velocity 0).
+      success_threshold: headline final-state MSE threshold (paper's table).
+      success_threshold_loose: the paper's text threshold.
+    """
+
+    scenario: str = "A"
+    T: int = 80
+    target: tuple[float, ...] = REACH_TARGET
+    success_threshold: float = 0.01
+    success_threshold_loose: float = 0.1
+
+    @property
+    def initial_angles(self) -> tuple[tuple[float, ...], ...]:
+        return SCENARIOS[self.scenario]
+
+    @property
+    def num_conditions(self) -> int:
+        return len(self.initial_angles)
+
+
+# ---------------------------------------------------------------------------------------------
+# Trajectory optimisation
+
+
+@dataclass(frozen=True)
+class InitLQRConfig:
+    """``init_lqr`` settings (mdgps-toolbox.md §4.1; Jaco values from gmr-method.md §2)."""
+
+    init_var: float = 1.0
+    stiffness: float = 1.0
+    stiffness_vel: float = 0.25
+    final_weight: float = 50.0
+    init_acc: tuple[float, ...] = (0.0,) * 6
+    init_gains: tuple[float, ...] = tuple(1.0 / g for g in JACO_GAINS)
+
+
+@dataclass(frozen=True)
+class LQRConfig:
+    """KL-constrained LQR and η dual search (mdgps-toolbox.md §2).
+
+    Attributes:
+      del0: first η increment of the non-PD rule.
+      min_eta, max_eta: bracket limits of the η search (max_eta is also the non-PD failure limit).
+      max_iterations: DGD_MAX_ITER of the η search.
+      tolerance: convergence when |KL − ε| < tolerance · ε.
+    """
+
+    del0: float = 1e-4
+    min_eta: float = 1e-8
+    max_eta: float = 1e16
+    max_iterations: int = 50
+    tolerance: float = 0.1
+
+
+@dataclass(frozen=True)
+class StepConfig:
+    """KL step and its adaptation (mdgps-toolbox.md §1.1, §1.3). ε = kl_step · step_mult · T."""
+
+    kl_step: float = 0.2
+    min_step_mult: float = 0.01
+    max_step_mult: float = 10.0
+    step_rule: str = "laplace"
+
+
+@dataclass(frozen=True)
+class DynamicsConfig:
+    """Dynamics fit with the GMM prior (mdgps-toolbox.md §3; Jaco values from gmr-method.md §2).
+
+    Attributes:
+      regularization: ridge added to the (x, u) block of the joint covariance (the toolbox adds a
+        rank-one 1e-6·11ᵀ; we add the ridge it meant, see dynamics.py).
+      max_clusters, min_samples_per_cluster: GMM size rule K = max(2, min(max, ⌊n/min⌋)).
+      max_samples: trajectories kept in the prior's ring buffer.
+      strength: prior strength.
+      em_iterations: EM budget per update (toolbox: 100, stopping early when ll decreases).
+      initial_state_var: floor of the initial-state variance.
+    """
+
+    regularization: float = 1e-6
+    max_clusters: int = 40
+    min_samples_per_cluster: int = 40
+    max_samples: int = 30
+    strength: float = 1.0
+    em_iterations: int = 100
+    initial_state_var: float = 1e-6
+
+
+# ---------------------------------------------------------------------------------------------
+# Top level
+
+
+ALGORITHMS = ("lqr", "mdgps", "gmr")
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole training run. Hashable, so it can be a static argument of ``jax.jit``.
+
+    Attributes:
+      algorithm: "lqr" (trajectory optimisation only, the paper's LQR base layer), "mdgps" (MLP
+        policy) or "gmr" (generative motor reflex policy).
+      iterations: GPS iterations.
+      num_samples: rollouts per condition per iteration.
+    """
+
+    algorithm: str = "lqr"
+    iterations: int = 10
+    num_samples: int = 5
+    sim: SimConfig = field(default_factory=SimConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    cost: CostConfig = field(default_factory=CostConfig)
+    init: InitLQRConfig = field(default_factory=InitLQRConfig)
+    lqr: LQRConfig = field(default_factory=LQRConfig)
+    step: StepConfig = field(default_factory=StepConfig)
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+
+    def __post_init__(self):
+        validate(self)
+
+
+def validate(cfg: Config) -> None:
+    """Raise ``ValueError`` naming the field and the allowed values for bad settings."""
+    if cfg.algorithm not in ALGORITHMS:
+        raise ValueError(f"algorithm={cfg.algorithm!r}: allowed values are {ALGORITHMS}")
+    if cfg.task.scenario not in SCENARIOS:
+        raise ValueError(f"task.scenario={cfg.task.scenario!r}: allowed values are {tuple(SCENARIOS)}")
+    for name, value in (("iterations", cfg.iterations), ("num_samples", cfg.num_samples),
+                        ("task.T", cfg.task.T), ("sim.substeps", cfg.sim.substeps)):
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name}={value!r}: must be a positive integer")
+    if cfg.num_samples < 2:
+        raise ValueError(f"num_samples={cfg.num_samples}: the dynamics fit needs at least 2 samples")
+    if cfg.sim.backend not in ("auto", "mjx", "mujoco"):
+        raise ValueError(f"sim.backend={cfg.sim.backend!r}: allowed values are ('auto', 'mjx', 'mujoco')")
+    if not (cfg.sim.control_dt > 0 and math.isfinite(cfg.sim.control_dt)):
+        raise ValueError(f"sim.control_dt={cfg.sim.control_dt!r}: must be a positive number")
+    if cfg.cost.state_ramp not in ("constant", "linear", "quadratic", "final_only"):
+        raise ValueError(f"cost.state_ramp={cfg.cost.state_ramp!r}: allowed values are "
+                         "('constant', 'linear', 'quadratic', 'final_only')")
+    if cfg.step.step_rule not in ("laplace", "mc"):
+        raise ValueError(f"step.step_rule={cfg.step.step_rule!r}: allowed values are ('laplace', 'mc')")
+
+
+def reach(scenario: str = "A", algorithm: str = "lqr", **overrides: Any) -> Config:
+    """The paper's reach configuration for a scenario ("A", "B", "AB") and algorithm.
+
+    ``overrides`` replace top-level fields (e.g. ``iterations=5``) or, with a double underscore,
+    nested ones (e.g. ``task__T=20``, ``sim__backend="mjx"``).
+    """
+    nested: dict[str, dict[str, Any]] = {}
+    top: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if "__" in key:
+            group, name = key.split("__", 1)
+            nested.setdefault(group, {})[name] = value
+        else:
+            top[key] = value
+    base = Config()
+    groups = {}
+    for group, values in nested.items():
+        if not hasattr(base, group):
+            raise ValueError(f"unknown configuration group {group!r}")
+        current = getattr(base, group)
+        unknown = set(values) - {f.name for f in dataclasses.fields(current)}
+        if unknown:
+            raise ValueError(f"unknown field(s) {sorted(unknown)} in configuration group {group!r}")
+        groups[group] = dataclasses.replace(current, **values)
+    task = groups.pop("task", base.task)
+    task = dataclasses.replace(task, scenario=scenario)
+    return dataclasses.replace(base, algorithm=algorithm, task=task, **groups, **top)
+
+
+def to_dict(cfg: Config) -> dict[str, Any]:
+    """A JSON-serialisable dictionary of the whole configuration."""
+    return dataclasses.asdict(cfg)
+
+
+def to_json(cfg: Config) -> str:
+    return json.dumps(to_dict(cfg), indent=2)
