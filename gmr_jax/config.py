@@ -286,3 +286,86 @@ def to_dict(cfg: Config) -> dict[str, Any]:
 
 def to_json(cfg: Config) -> str:
     return json.dumps(to_dict(cfg), indent=2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Policy and S-step (mdgps-toolbox.md §4.3, gmr-method.md §1–§3)
+
+MLP_INITS = ("lecun_normal", "normal")
+ACTIVATIONS = ("relu", "leaky_relu", "tanh", "elu", "swish")
+
+
+@dataclass(frozen=True)
+class SStepConfig:
+    """The supervised S-step (paper: Adam, lr 1e-3, 400 epochs, batch 20, β = 2e-4).
+
+    Attributes:
+      lr: Adam learning rate (fixed).
+      b1, b2, eps: Adam constants (library defaults, as the toolbox).
+      epochs: passes over the data set per S-step; each epoch reshuffles.
+      batch_size: rows per minibatch; the remainder of B mod batch_size is dropped per epoch.
+      weight_decay: β of the L2 term β·Σθ² over all trainable weights and biases (the paper's
+        form; the toolbox's weight_decay·½‖θ‖² is the same with β = weight_decay/2).
+      obs_std_floor: floor of the input standard deviation in the normalisation (toolbox 1e-3).
+      weight_median_floor: weights above this take part in the median of the weight rule (1e-2).
+      weight_clip: weights are clipped at weight_clip × median before dividing by it (2).
+    """
+
+    lr: float = 1e-3
+    b1: float = 0.9
+    b2: float = 0.999
+    eps: float = 1e-8
+    epochs: int = 400
+    batch_size: int = 20
+    weight_decay: float = 2e-4
+    obs_std_floor: float = 1e-3
+    weight_median_floor: float = 1e-2
+    weight_clip: float = 2.0
+
+    def __post_init__(self):
+        for name in ("epochs", "batch_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"sstep.{name}={value!r}: must be a positive integer")
+        for name in ("lr", "eps", "obs_std_floor", "weight_clip"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"sstep.{name}={value!r}: must be a positive number")
+        if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
+            raise ValueError(f"sstep.weight_decay={self.weight_decay!r}: must be a number ≥ 0")
+
+
+@dataclass(frozen=True)
+class MLPConfig:
+    """The MDGPS baseline policy: a fully connected network 12 → 64 → 64 → 6 (paper).
+
+    Attributes:
+      hidden: widths of the hidden layers.
+      activation: hidden nonlinearity, one of ACTIVATIONS (paper: "relu").
+      init: weight initialiser, "lecun_normal" (Flax default, variance 1/fan_in: keeps the
+        activations of standardised inputs at unit scale) or "normal" (the toolbox's
+        N(0, init_std²)); biases start at 0 in both cases.
+      init_std: standard deviation of the "normal" initialiser (toolbox 0.01).
+      init_var: exploration variance per action dimension before the first S-step (toolbox 0.1).
+      ent_reg: entropy regulariser of the closed-form variance, var = 1/diag(A + 2·ent_reg)
+        (toolbox 0).
+    """
+
+    hidden: tuple[int, ...] = (64, 64)
+    activation: str = "relu"
+    init: str = "lecun_normal"
+    init_std: float = 0.01
+    init_var: float = 0.1
+    ent_reg: float = 0.0
+
+    def __post_init__(self):
+        if not (isinstance(self.hidden, tuple) and all(isinstance(h, int) and h >= 1 for h in self.hidden)):
+            raise ValueError(f"mlp.hidden={self.hidden!r}: must be a tuple of positive integers")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"mlp.activation={self.activation!r}: allowed values are {ACTIVATIONS}")
+        if self.init not in MLP_INITS:
+            raise ValueError(f"mlp.init={self.init!r}: allowed values are {MLP_INITS}")
+        if not (self.init_var > 0 and math.isfinite(self.init_var)):
+            raise ValueError(f"mlp.init_var={self.init_var!r}: must be a positive number")
+        if not (self.ent_reg >= 0 and math.isfinite(self.ent_reg)):
+            raise ValueError(f"mlp.ent_reg={self.ent_reg!r}: must be a number ≥ 0")
