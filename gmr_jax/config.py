@@ -193,6 +193,39 @@ class DynamicsConfig:
     initial_state_var: float = 1e-6
 
 
+POLICY_PRIOR_MODES = ("add", "replace")
+
+
+@dataclass(frozen=True)
+class PolicyPriorConfig:
+    """GMM prior of the policy linearisation (mdgps-toolbox.md §4.2, see linearize.py).
+
+    Attributes:
+      min_samples_per_cluster, max_clusters: GMM size rule K = max(2, min(max, ⌊n/min⌋)) over the
+        n = n_stored·T stored states (toolbox POLICY_PRIOR_GMM: 20 and 50; we cap at 20 clusters;
+        the toolbox's MDGPS MuJoCo example uses 40/20/20).
+      max_samples: trajectories kept in the prior's ring buffer ('add' mode).
+      strength: prior strength.
+      em_iterations: EM budget per update (toolbox: 100).
+      mode: "add" (append to the store, toolbox default) or "replace" (only the current samples,
+        the MuJoCo MDGPS example).
+      t0_regularization: ridge on the state block of the joint covariance at t = 0 (toolbox 1e-8,
+        broadcast there to every entry of the block; we add the ridge it meant).
+    """
+
+    min_samples_per_cluster: int = 20
+    max_clusters: int = 20
+    max_samples: int = 20
+    strength: float = 1.0
+    em_iterations: int = 100
+    mode: str = "add"
+    t0_regularization: float = 1e-8
+
+    def __post_init__(self):
+        if self.mode not in POLICY_PRIOR_MODES:
+            raise ValueError(f"policy_prior.mode={self.mode!r}: allowed values are {POLICY_PRIOR_MODES}")
+
+
 # ---------------------------------------------------------------------------------------------
 # Top level
 
