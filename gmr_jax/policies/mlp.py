@@ -1,0 +1,110 @@
+"""The MDGPS baseline policy: a fully connected network with a state-independent Gaussian.
+
+π(u | x) = N(f_θ(x̃), diag(var)), x̃ = x·scale + bias (statistics fixed at the first S-step),
+f_θ = 12 → 64 → 64 → 6 with ReLU (paper). The S-step minimises
+½·(u − f_θ(x̃))ᵀ w·P (u − f_θ(x̃)) averaged over the minibatch (+ β·Σθ², added by the S-step),
+and afterwards sets var = 1/diag(A + 2·ent_reg) in closed form, A the weighted mean of the
+target precisions (mdgps-toolbox.md §4.3, steps 4 and 5).
+
+Initialisation (MLPConfig.init): "lecun_normal" (the default, Flax's: N(0, 1/fan_in) truncated,
+biases 0) keeps the hidden activations of standardised inputs at unit scale, so the 400 epochs of
+the paper start from a useful gradient; "normal" is the toolbox's N(0, 0.01²), biases 0.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from gmr_jax.config import MLPConfig
+from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, default_float,
+                                   identity_normalization, normalize_input,
+                                   weighted_action_error)
+
+
+ACTIVATION_FNS: dict[str, Callable] = {
+    "relu": nn.relu,
+    "leaky_relu": nn.leaky_relu,
+    "tanh": jnp.tanh,
+    "elu": nn.elu,
+    "swish": nn.swish,
+}
+
+
+class MLP(nn.Module):
+    """Fully connected network: [..., dX] -> [..., dU], hidden layers with ``activation``."""
+
+    hidden: tuple[int, ...]
+    out: int
+    activation: str = "relu"
+    weight_init: str = "lecun_normal"
+    init_std: float = 0.01
+    param_dtype: Any = jnp.float32
+
+    @nn.compact
+    def __call__(self, x):
+        kernel_init = (nn.initializers.lecun_normal() if self.weight_init == "lecun_normal"
+                       else nn.initializers.normal(self.init_std))
+        act = ACTIVATION_FNS[self.activation]
+        for width in self.hidden:
+            x = act(nn.Dense(width, kernel_init=kernel_init, bias_init=nn.initializers.zeros,
+                             param_dtype=self.param_dtype)(x))
+        return nn.Dense(self.out, kernel_init=kernel_init, bias_init=nn.initializers.zeros,
+                        param_dtype=self.param_dtype)(x)
+
+
+def closed_form_variance(tgt_prc, wt, ent_reg: float = 0.0):
+    """Toolbox variance rule: var [dU] = 1/diag(A + 2·ent_reg·11ᵀ), A = Σ_b w_b P_b / Σ_b w_b.
+
+    Args:
+      tgt_prc: [B, dU, dU] unweighted target precisions.
+      wt: [B] normalised weights.
+
+    The toolbox divides the *unweighted* sum of precisions by the sum of the normalised weights;
+    with constant weights (the only case MDGPS produces) both forms give 1/diag(mean precision).
+    The weighted mean used here also lets zero-weight (padding) rows drop out.
+    """
+    A = jnp.einsum("b,bij->ij", wt, tgt_prc) / jnp.sum(wt)
+    return 1.0 / (jnp.diagonal(A) + 2.0 * ent_reg)
+
+
+def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
+    """The MDGPS baseline MLP policy for a configuration (see the module docstring)."""
+
+    def module(dU: int, dtype=jnp.float32) -> MLP:
+        return MLP(hidden=tuple(cfg.hidden), out=dU, activation=cfg.activation, weight_init=cfg.init,
+                   init_std=cfg.init_std, param_dtype=dtype)
+
+    def init(key, dX: int, dU: int, dtype=None) -> PolicyParams:
+        """Params: net (Flax weights), identity normalisation, var [dU] = init_var."""
+        dtype = default_float() if dtype is None else jnp.dtype(dtype)
+        net = module(dU, dtype).init(key, jnp.zeros((dX,), dtype))
+        return PolicyParams(net=net, norm=identity_normalization(dX, dtype),
+                            var=jnp.full((dU,), cfg.init_var, dtype))
+
+    def mean(params: PolicyParams, x):
+        """Deterministic action: x [..., dX] -> u [..., dU]."""
+        dU = params.var.shape[-1]
+        return module(dU).apply(params.net, normalize_input(params.norm, x))
+
+    def covariance(params: PolicyParams, x):
+        """State-independent covariance diag(var): x [dX] -> [dU, dU]."""
+        del x
+        return jnp.diag(params.var)
+
+    def loss(params: PolicyParams, batch: SStepData, key):
+        """½·mean_b (u_b − û_b)ᵀ (w·P)_b (u_b − û_b); the key is unused (deterministic net)."""
+        del key
+        u = mean(params, batch.x)
+        value = weighted_action_error(u, batch.tgt_mu, batch.tgt_prc)
+        return value, {"action_mse": jnp.mean(jnp.square(u - batch.tgt_mu))}
+
+    def finalize(params: PolicyParams, data: SStepData) -> PolicyParams:
+        """Closed-form variance after the S-step (data: unweighted precisions, normalised wt)."""
+        var = closed_form_variance(data.tgt_prc, data.wt, cfg.ent_reg)
+        return params._replace(var=var.astype(params.var.dtype))
+
+    return Policy(init=init, mean=mean, covariance=covariance, loss=loss, finalize=finalize)

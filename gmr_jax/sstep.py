@@ -1,0 +1,157 @@
+"""The supervised S-step of MDGPS: fit the global policy to the local controllers' actions.
+
+Toolbox rules (mdgps-toolbox.md §4.3) with the paper's optimiser settings (gmr-method.md §1):
+
+1. weights: w ← w·B/Σw; mn = median(w[w > 1e-2]); w ← min(w, 2·mn)/mn; the precision fed to the
+   loss is w·P (``normalize_weights``);
+2. input normalisation computed on the first S-step only and reused forever
+   (``set_normalization``);
+3. Adam with a fresh state at every S-step (parameters are warm-started: the caller passes the
+   previous S-step's params), ``epochs`` epochs, each a new shuffle, minibatches of
+   ``batch_size`` rows (the B mod batch_size leftover of each shuffle is dropped), objective =
+   policy.loss + β·Σθ² over ``params.net``;
+4. ``policy.finalize`` on the whole data set (MLP: closed-form variance).
+
+The paper counts epochs (400) where the toolbox counts steps; we follow the paper.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import optax
+from jax import lax
+
+from gmr_jax.config import SStepConfig
+from gmr_jax.policies.base import Normalization, Policy, PolicyParams, SStepData, l2_penalty
+
+
+def set_normalization(params: PolicyParams, x, weights=None, std_floor: float = 1e-3) -> PolicyParams:
+    """Fix the input normalisation from the data if it is not set yet (otherwise unchanged).
+
+    scale = 1/max(std, std_floor), bias = −mean·scale (population statistics per input
+    dimension, toolbox §4.3 step 2).
+
+    Args:
+      params: policy params with ``norm`` (scale [dX], bias [dX], set []).
+      x: [B, dX] states.
+      weights: optional [B]; rows with weight ≤ 0 (padding) are left out of the statistics
+        (all rows count if none has a positive weight).
+      std_floor: floor of the standard deviation (toolbox 1e-3).
+    Returns: params with ``norm`` set (``norm.set`` True).
+    """
+    norm = params.norm
+    dtype = norm.scale.dtype
+
+    def compute(_):
+        xf = x.astype(dtype)
+        if weights is None:
+            mask = jnp.ones(xf.shape[:1], dtype)
+        else:
+            valid = weights > 0
+            mask = jnp.where(jnp.any(valid), valid, True).astype(dtype)
+        n = jnp.sum(mask)
+        mean = mask @ xf / n
+        var = mask @ jnp.square(xf - mean) / n
+        scale = 1.0 / jnp.maximum(jnp.sqrt(var), std_floor)
+        return Normalization(scale=scale.astype(dtype), bias=(-mean * scale).astype(dtype),
+                             set=jnp.asarray(True))
+
+    def keep(_):
+        return Normalization(scale=norm.scale, bias=norm.bias, set=jnp.asarray(True))
+
+    return params._replace(norm=lax.cond(norm.set, keep, compute, None))
+
+
+def normalize_weights(wt, median_floor: float = 1e-2, clip: float = 2.0):
+    """Toolbox weight rule (§4.3 step 1): [B] -> [B].
+
+    w ← w·B/Σw (mean 1); mn = median of the entries > median_floor (numpy's median: the mean of
+    the two middle values for an even count); w ← min(w, clip·mn)/mn, so the robust median is 1.
+    A non-positive Σw or no entry above the floor gives zeros / skips the median (then
+    ``sstep``'s metrics report it through ``weights_ok``).
+    """
+    B = wt.shape[0]
+    total = jnp.sum(wt)
+    w = jnp.where(total > 0, wt * (B / jnp.where(total > 0, total, 1)), jnp.zeros_like(wt))
+    mask = w > median_floor
+    count = jnp.sum(mask)
+    s = jnp.sort(jnp.where(mask, w, jnp.inf))
+    lo = s[jnp.maximum((count - 1) // 2, 0)]
+    hi = s[jnp.minimum(count // 2, B - 1)]
+    mn = jnp.where(count > 0, 0.5 * (lo + hi), jnp.ones((), w.dtype))
+    return jnp.minimum(w, clip * mn) / mn
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(tree)
+              if jnp.issubdtype(leaf.dtype, jnp.inexact)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStepConfig = SStepConfig()):
+    """One S-step: train ``params.net`` on ``data`` and finalise the policy.
+
+    Args:
+      policy: the policy's functions (static under jit).
+      params: current params (warm start; the normalisation is set here on the first call).
+      data: SStepData with B rows (B ≥ cfg.batch_size); wt [B] raw weights (e.g. constant).
+      key: PRNG key (typed or raw uint32) for the shuffles and the policy's loss.
+      cfg: SStepConfig (static).
+    Returns:
+      (params, metrics) with metrics:
+        loss: [epochs] mean objective (data term + β·Σθ²) over each epoch's minibatches, each
+          evaluated before its update;
+        data_loss: [epochs] the same without the L2 term;
+        aux: dict of [epochs], the per-epoch means of the policy loss's aux entries;
+        weights_ok: [] bool, the raw weights had a positive sum;
+        finite: [] bool, every loss and every parameter after the S-step is finite (a False must
+          stop the caller: the new params are unusable).
+    """
+    B = data.x.shape[0]
+    bs = cfg.batch_size
+    nb = B // bs
+    if nb < 1:
+        raise ValueError(f"S-step data has B={B} rows, fewer than sstep.batch_size={bs}")
+
+    wn = normalize_weights(data.wt, cfg.weight_median_floor, cfg.weight_clip)
+    params = set_normalization(params, data.x, wn, cfg.obs_std_floor)
+    # Fold the normalised weight into the precision (toolbox); keep it in wt for other terms.
+    train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn)
+
+    opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
+
+    def objective(net, batch, k):
+        value, aux = policy.loss(params._replace(net=net), batch, k)
+        return value + cfg.weight_decay * l2_penalty(net), (value, aux)
+
+    grad_fn = jax.value_and_grad(objective, has_aux=True)
+
+    def batch_step(carry, inputs):
+        net, opt_state = carry
+        idx, k = inputs
+        batch = jax.tree_util.tree_map(lambda a: a[idx], train)
+        (total, (value, aux)), grads = grad_fn(net, batch, k)
+        updates, opt_state = opt.update(grads, opt_state, net)
+        return (optax.apply_updates(net, updates), opt_state), (total, value, aux)
+
+    def epoch(carry, k):
+        k_perm, k_loss = jax.random.split(k)
+        idx = jax.random.permutation(k_perm, B)[: nb * bs].reshape(nb, bs)
+        carry, (total, value, aux) = lax.scan(batch_step, carry, (idx, jax.random.split(k_loss, nb)))
+        means = jax.tree_util.tree_map(lambda a: jnp.mean(a, axis=0), (total, value, aux))
+        return carry, means
+
+    # Fresh optimiser state at every S-step (the authors' practice); parameters are warm-started.
+    carry = (params.net, opt.init(params.net))
+    (net, _), (loss, data_loss, aux) = lax.scan(epoch, carry, jax.random.split(key, cfg.epochs))
+
+    params = policy.finalize(params._replace(net=net), data._replace(wt=wn))
+    metrics = {
+        "loss": loss,
+        "data_loss": data_loss,
+        "aux": aux,
+        "weights_ok": jnp.sum(data.wt) > 0,
+        "finite": jnp.all(jnp.isfinite(loss)) & _all_finite(params),
+    }
+    return params, metrics
