@@ -1,0 +1,335 @@
+"""Tests of gmr_jax.cost: ramps, norms, terms, Gauss–Newton EE expansion, absolute-coordinate expansion."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gmr_jax import cost
+from gmr_jax.config import CostConfig, REACH_TARGET
+
+dX, dU, T = 12, 6, 5
+
+
+# ---------------------------------------------------------------------------------------------
+# Independent numpy implementations and a toy end-effector
+
+
+def np_l1l2(d, wp, l1, l2, alpha):
+    s = np.sum((wp * d) ** 2)
+    r = np.sqrt(alpha + s)
+    v = wp**2 * d
+    return (0.5 * l2 * np.sum(wp * d**2) + l1 * r,
+            l2 * wp * d + l1 * v / r,
+            l1 * (np.diag(wp**2) / r - np.outer(v, v) / r**3) + l2 * np.diag(wp))
+
+
+def np_logl2(d, wp, l1, l2, alpha):
+    a = alpha + np.sum((wp * d) ** 2)
+    v = wp**2 * d
+    return (0.5 * l2 * np.sum(wp * d**2) + 0.5 * l1 * np.log(a),
+            l2 * wp * d + l1 * v / a,
+            l1 * (np.diag(wp**2) / a - 2.0 * np.outer(v, v) / a**2) + l2 * np.diag(wp))
+
+
+def toy_ee(q):
+    """A nonlinear 'forward kinematics' q [6] -> [3] (planar-ish chain plus a height)."""
+    a1 = q[0] + q[1]
+    return jnp.stack([jnp.cos(q[0]) + 0.5 * jnp.cos(a1) + 0.1 * q[3],
+                      jnp.sin(q[0]) + 0.5 * jnp.sin(a1) + 0.2 * q[4] * q[2],
+                      0.3 * q[2] + 0.1 * jnp.sin(q[5])])
+
+
+def toy_ee_jac(q):
+    a1 = q[0] + q[1]
+    J = np.zeros((3, 6))
+    J[0, 0] = -np.sin(q[0]) - 0.5 * np.sin(a1)
+    J[0, 1] = -0.5 * np.sin(a1)
+    J[0, 3] = 0.1
+    J[1, 0] = np.cos(q[0]) + 0.5 * np.cos(a1)
+    J[1, 1] = 0.5 * np.cos(a1)
+    J[1, 2] = 0.2 * q[4]
+    J[1, 4] = 0.2 * q[2]
+    J[2, 2] = 0.3
+    J[2, 5] = 0.1 * np.cos(q[5])
+    return J
+
+
+def fd_grad(f, y, h=1e-6):
+    g = np.zeros_like(y)
+    for i in range(y.size):
+        e = np.zeros_like(y)
+        e[i] = h
+        g[i] = (f(y + e) - f(y - e)) / (2 * h)
+    return g
+
+
+def fd_jac(g, y, h=1e-5):
+    H = np.zeros((y.size, y.size))
+    for i in range(y.size):
+        e = np.zeros_like(y)
+        e[i] = h
+        H[:, i] = (g(y + e) - g(y - e)) / (2 * h)
+    return H
+
+
+rng = np.random.default_rng(0)
+TARGET = np.concatenate([np.asarray(REACH_TARGET), np.zeros(6)])
+
+
+# ---------------------------------------------------------------------------------------------
+# Ramps
+
+
+def test_ramps():
+    Tr = 4
+    np.testing.assert_allclose(cost.ramp(Tr, "constant", 1.0), np.ones(Tr))
+    np.testing.assert_allclose(cost.ramp(Tr, "linear", 1.0), [0.25, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(cost.ramp(Tr, "quadratic", 1.0), [0.0625, 0.25, 0.5625, 1.0])
+    np.testing.assert_allclose(cost.ramp(Tr, "final_only", 1.0), [0, 0, 0, 1.0])
+    np.testing.assert_allclose(cost.ramp(Tr, "constant", 10.0), [1, 1, 1, 10.0])
+    np.testing.assert_allclose(cost.ramp(Tr, "linear", 3.0), [0.25, 0.5, 0.75, 3.0])
+    np.testing.assert_allclose(cost.ramp(Tr, "final_only", 7.0), [0, 0, 0, 7.0])
+    with pytest.raises(ValueError, match="allowed values"):
+        cost.ramp(Tr, "cubic", 1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Norm formulas against numpy
+
+
+@pytest.mark.parametrize("norm", ["l1l2", "logl2"])
+def test_norm_terms_match_numpy(norm):
+    fn = cost.l1l2_term if norm == "l1l2" else cost.logl2_term
+    ref = np_l1l2 if norm == "l1l2" else np_logl2
+    for _ in range(3):
+        d = rng.normal(size=5)
+        wp = rng.uniform(0.1, 2.0, size=5)
+        l1, l2, alpha = 0.7, 1.3, 0.05
+        got = fn(jnp.asarray(d), jnp.asarray(wp), l1, l2, alpha)
+        want = ref(d, wp, l1, l2, alpha)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(np.asarray(g), w, rtol=1e-12, atol=1e-12)
+        # d1, d2 are the exact derivatives of l (this is where the log-l2 factor 2 matters).
+        f = lambda dd: float(fn(jnp.asarray(dd), jnp.asarray(wp), l1, l2, alpha)[0])
+        np.testing.assert_allclose(fd_grad(f, d), np.asarray(got[1]), rtol=1e-6, atol=1e-8)
+        g1 = lambda dd: np.asarray(fn(jnp.asarray(dd), jnp.asarray(wp), l1, l2, alpha)[1])
+        np.testing.assert_allclose(fd_jac(g1, d), np.asarray(got[2]), rtol=1e-6, atol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------------
+# Terms: value, gradient, Hessian against finite differences of the value
+
+
+def _jitted(cfn):
+    """(value(y, t), expand(y, t)) on y = [x; u], compiled once (eager op-by-op is slow)."""
+    value = jax.jit(lambda y, t: cfn(y[:dX], y[dX:], t))
+    expand = jax.jit(lambda y, t: cfn.expand(y[:dX], y[dX:], t))
+    return value, expand
+
+
+def _check_expansion_fd(cfn, x, u, t, exact_hessian=True):
+    value, expand = _jitted(cfn)
+    y = np.concatenate([x, u])
+    l, c, C = (np.asarray(a) for a in expand(y, t))
+    f = lambda yy: float(value(yy, t))
+    np.testing.assert_allclose(l, f(y), rtol=1e-13)
+    np.testing.assert_allclose(c, fd_grad(f, y), rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(C, C.T, atol=1e-14)
+    if exact_hessian:
+        g = lambda yy: np.asarray(expand(yy, t)[1])
+        np.testing.assert_allclose(C, fd_jac(g, y), rtol=1e-6, atol=1e-7)
+    return l, c, C
+
+
+@pytest.mark.parametrize("norm", ["l1l2", "logl2"])
+def test_state_cost_expansion_is_exact(norm):
+    wp = rng.uniform(0.0, 2.0, size=dX)
+    r = cost.ramp(T, "linear", 4.0)
+    cfn = cost.state_cost(TARGET, wp, 0.5, 1.5, 1e-2, r, norm=norm)
+    x = TARGET + 0.3 * rng.normal(size=dX)
+    u = rng.normal(size=dU)
+    for t in (0, T - 1):
+        l, c, C = _check_expansion_fd(cfn, x, u, t)
+        ref = (np_l1l2 if norm == "l1l2" else np_logl2)(x - TARGET, wp * r[t], 0.5, 1.5, 1e-2)
+        np.testing.assert_allclose(l, ref[0], rtol=1e-12)
+        np.testing.assert_allclose(c[:dX], ref[1], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(C[:dX, :dX], ref[2], rtol=1e-12, atol=1e-14)
+        assert np.all(c[dX:] == 0) and np.all(C[dX:] == 0) and np.all(C[:, dX:] == 0)
+
+
+def test_action_cost():
+    wu = rng.uniform(0.1, 1.0, size=dU)
+    cfn = cost.action_cost(wu)
+    x, u = rng.normal(size=dX), rng.normal(size=dU)
+    l, c, C = _check_expansion_fd(cfn, x, u, 2)
+    np.testing.assert_allclose(l, 0.5 * np.sum(wu * u**2), rtol=1e-14)
+    np.testing.assert_allclose(c[dX:], wu * u, rtol=1e-14)
+    np.testing.assert_allclose(C[dX:, dX:], np.diag(wu), rtol=1e-14)
+    assert np.all(C[:dX] == 0) and np.all(c[:dX] == 0)
+
+
+def test_cost_sum_and_autodiff_wrapper():
+    wu = rng.uniform(0.1, 1.0, size=dU)
+    wp = rng.uniform(0.5, 1.0, size=dX)
+    plain = lambda x, u, t: jnp.sum(jnp.sin(x[:3])) * (t + 1) + jnp.sum(u**4)
+    a, b = cost.action_cost(wu), cost.state_cost(TARGET, wp, 0.3, 1.0, 1e-2, cost.ramp(T, "constant", 1.0))
+    s = cost.cost_sum([a, b, plain], [2.0, 0.5, 3.0])
+    x, u = TARGET + rng.normal(size=dX), rng.normal(size=dU)
+    # The sum's expansion is the weighted sum of the parts' (one compiled call for all of them).
+    parts = jax.jit(lambda x_, u_: [c.expand(x_, u_, 1) for c in (a, b, cost.from_function(plain))])(x, u)
+    l, c, C = _check_expansion_fd(s, x, u, 1)  # value, gradient, Hessian vs finite differences
+    for k, got in enumerate((l, c, C)):
+        np.testing.assert_allclose(got, 2 * parts[0][k] + 0.5 * parts[1][k] + 3 * parts[2][k], rtol=1e-13)
+
+
+# ---------------------------------------------------------------------------------------------
+# End-effector term: Gauss–Newton in q
+
+
+@pytest.mark.parametrize("norm", ["l1l2", "logl2"])
+def test_ee_cost_is_gauss_newton(norm):
+    target_ee = np.array([0.4, 0.9, 0.2])
+    wp = np.array([1.0, 2.0, 0.5])
+    l1, l2, alpha = 0.8, 1.2, 1e-3
+    r = cost.ramp(T, "quadratic", 2.0)
+    cfn = cost.end_effector_cost(toy_ee, target_ee, wp, l1, l2, alpha, r, norm=norm)
+    x, u = rng.normal(size=dX), rng.normal(size=dU)
+    t = T - 1
+    value, expand = _jitted(cfn)
+    y = np.concatenate([x, u])
+    l, c, C = (np.asarray(a) for a in expand(y, t))
+    q = x[:6]
+    J = toy_ee_jac(q)
+    d = np.asarray(toy_ee(jnp.asarray(q))) - target_ee
+    ref = (np_l1l2 if norm == "l1l2" else np_logl2)(d, wp * r[t], l1, l2, alpha)
+    np.testing.assert_allclose(l, ref[0], rtol=1e-12)
+    np.testing.assert_allclose(c[:6], J.T @ ref[1], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(C[:6, :6], J.T @ ref[2] @ J, rtol=1e-10, atol=1e-12)
+    # Derivatives only in the joint-angle block.
+    assert np.all(c[6:] == 0) and np.all(C[6:] == 0) and np.all(C[:, 6:] == 0)
+    # The gradient is exact; the Hessian is Gauss–Newton, not the exact one (toy_ee is curved).
+    np.testing.assert_allclose(c, fd_grad(lambda yy: float(value(yy, t)), y), rtol=1e-6, atol=1e-8)
+    exact = np.asarray(jax.jit(jax.hessian(value))(y, t))
+    assert np.max(np.abs(exact[:6, :6] - C[:6, :6])) > 1e-3
+
+
+def test_ee_cost_linear_map_expansion_is_exact():
+    # With a linear ee_fn, Gauss–Newton equals the exact Hessian; with logl2 and l1 > 0 this fails
+    # if the outer-product factor 2 is dropped (the toolbox's omission).
+    A = rng.normal(size=(3, 6))
+    ee = lambda q: A @ q
+    cfn = cost.end_effector_cost(ee, np.zeros(3), np.ones(3), 1.0, 0.5, 1e-2,
+                                 cost.ramp(T, "constant", 1.0), norm="logl2")
+    x, u = 0.2 * rng.normal(size=dX), rng.normal(size=dU)
+    _check_expansion_fd(cfn, x, u, 0, exact_hessian=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Expansion over trajectories
+
+
+def _quadratic_cost():
+    wp = rng.uniform(0.0, 2.0, size=dX)
+    return cost.cost_sum([
+        cost.action_cost(rng.uniform(0.1, 1.0, size=dU)),
+        cost.state_cost(TARGET, wp, 0.0, 1.0, 1e-2, cost.ramp(T, "linear", 1.0)),
+        cost.state_cost(TARGET, np.ones(dX), 0.0, 2.0, 1e-5, cost.ramp(T, "final_only", 10.0)),
+    ])
+
+
+def _eval_quadratic(qc, X, U):
+    Y = np.concatenate([X, U], axis=-1)
+    return (0.5 * np.einsum("...ti,tij,...tj->...t", Y, np.asarray(qc.Cm), Y)
+            + np.einsum("...ti,ti->...t", Y, np.asarray(qc.cv)) + np.asarray(qc.cc))
+
+
+def test_quadratic_cost_expansion_is_exact_in_absolute_coordinates():
+    cfn = _quadratic_cost()
+    N = 3
+    X = TARGET + rng.normal(size=(N, T, dX))
+    U = rng.normal(size=(N, T, dU))
+    qc, cs = jax.jit(cost.quadratic_expansion, static_argnums=0)(cfn, X, U)
+    assert qc.Cm.shape == (T, dX + dU, dX + dU) and qc.cv.shape == (T, dX + dU) and qc.cc.shape == (T,)
+    assert cs.shape == (N, T)
+    # The re-centred quadratic reproduces the cost at the expansion points and far from them.
+    X2 = np.concatenate([X, TARGET + 3.0 * rng.normal(size=(N, T, dX))])
+    U2 = np.concatenate([U, 3.0 * rng.normal(size=(N, T, dU))])
+    true = np.asarray(jax.jit(cost.evaluate_costs, static_argnums=0)(cfn, X2, U2))
+    np.testing.assert_allclose(np.asarray(cs), true[:N], rtol=1e-14)
+    np.testing.assert_allclose(_eval_quadratic(qc, X2, U2), true, rtol=1e-10, atol=1e-10)
+
+
+def test_expansion_averages_over_samples():
+    cfn = cost.cost_sum([
+        cost.action_cost(np.full(dU, 0.1)),
+        cost.state_cost(TARGET, np.ones(dX), 1.0, 1.0, 1e-2, cost.ramp(T, "constant", 1.0)),
+        cost.end_effector_cost(toy_ee, np.array([0.5, 0.5, 0.5]), np.ones(3), 0.5, 1.0, 1e-5,
+                               cost.ramp(T, "constant", 1.0), norm="logl2"),
+    ])
+    M, N = 2, 3  # a leading condition axis is mapped over
+    X = TARGET + rng.normal(size=(M, N, T, dX))
+    U = rng.normal(size=(M, N, T, dU))
+    qexp = jax.jit(cost.quadratic_expansion, static_argnums=0)
+    qc, cs = qexp(cfn, X, U)
+    assert qc.Cm.shape == (M, T, dX + dU, dX + dU) and cs.shape == (M, N, T)
+    assert bool(cost.expansion_is_finite(qc, cs))
+    _, expand = _jitted(cfn)
+    # Independent per-sample re-centring in numpy, then the mean over samples.
+    for m in range(M):
+        Cm = np.zeros((T, dX + dU, dX + dU)); cv = np.zeros((T, dX + dU)); cc = np.zeros(T)
+        for n in range(N):
+            for t in range(T):
+                y = np.concatenate([X[m, n, t], U[m, n, t]])
+                l, c, C = (np.asarray(a) for a in expand(y, t))
+                Cm[t] += C / N
+                cv[t] += (c - C @ y) / N
+                cc[t] += (l - c @ y + 0.5 * y @ C @ y) / N
+                np.testing.assert_allclose(float(cs[m, n, t]), l, rtol=1e-13)
+        np.testing.assert_allclose(np.asarray(qc.Cm[m]), Cm, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(qc.cv[m]), cv, rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(np.asarray(qc.cc[m]), cc, rtol=1e-11, atol=1e-11)
+    # A NaN sample is flagged.
+    Xn = X.copy(); Xn[0, 0, 0, 0] = np.nan
+    assert not bool(cost.expansion_is_finite(*qexp(cfn, Xn, U)))
+
+
+def test_follows_float32_dtype():
+    cfn = cost.reach_cost(dataclasses.replace(CostConfig(), ee_weight=1.0, state_l1=0.1), TARGET, T,
+                          ee_fn=toy_ee)
+    X = jnp.asarray(TARGET + rng.normal(size=(2, T, dX)), jnp.float32)
+    U = jnp.asarray(rng.normal(size=(2, T, dU)), jnp.float32)
+    qc, cs = jax.jit(cost.quadratic_expansion, static_argnums=0)(cfn, X, U)
+    assert qc.Cm.dtype == qc.cv.dtype == qc.cc.dtype == cs.dtype == jnp.float32
+    assert bool(cost.expansion_is_finite(qc, cs))
+
+
+# ---------------------------------------------------------------------------------------------
+# Reach cost
+
+
+def test_reach_cost_default():
+    cfg = CostConfig()
+    evaluate = jax.jit(cost.evaluate_costs, static_argnums=0)
+    # Row 0: at the target with zero action; row 1: a random nearby trajectory.
+    X = np.stack([np.broadcast_to(TARGET, (T, dX)), TARGET + 0.1 * rng.normal(size=(T, dX))])
+    U = np.stack([np.zeros((T, dU)), rng.normal(size=(T, dU))])
+    cs = np.asarray(evaluate(cost.reach_cost(cfg, TARGET, T), X, U))
+    assert np.all(np.isfinite(cs)) and np.all(np.abs(cs[0]) < 1e-12)
+    d = X[1] - TARGET
+    want = 0.5 * np.sum(np.asarray(cfg.action_weight) * U[1] ** 2, -1)
+    want += 0.5 * np.sum(np.asarray(cfg.state_wp) * d**2, -1)
+    want[-1] += 0.5 * cfg.final_multiplier * np.sum(np.asarray(cfg.final_wp) * d[-1] ** 2)
+    np.testing.assert_allclose(cs[1], want, rtol=1e-12)
+    # With an end-effector term: still zero at the target, and it adds ½ w ‖ee − ee*‖².
+    cfg_ee = dataclasses.replace(cfg, ee_weight=2.0)
+    cs_ee = np.asarray(evaluate(cost.reach_cost(cfg_ee, TARGET, T, ee_fn=toy_ee), X, U))
+    assert np.all(np.abs(cs_ee[0]) < 1e-12)
+    ee_d = np.asarray(jax.vmap(toy_ee)(X[1, :, :6])) - np.asarray(toy_ee(TARGET[:6]))
+    np.testing.assert_allclose(cs_ee[1], want + np.sum(ee_d**2, -1), rtol=1e-12)
+    with pytest.raises(ValueError, match="ee_fn"):
+        cost.reach_cost(cfg_ee, TARGET, T)
+    with pytest.raises(ValueError, match="target_x"):
+        cost.reach_cost(cfg, TARGET[:6], T)
