@@ -63,7 +63,6 @@ def ramp(T: int, mode: str, final_multiplier: float = 1.0) -> np.ndarray:
         w[-1] = 1.0
     # The toolbox computes linear/quadratic ramps in float32; we keep float64 on the host and
     # cast to the state's dtype when the cost is evaluated.
-    w = w.copy()
     w[-1] *= final_multiplier
     return w
 
@@ -303,8 +302,12 @@ def end_effector_cost(ee_fn: Callable, target_ee, wp, l1, l2, alpha, ramp_w,
     def expand(x, u, t):
         dtype = x.dtype
         q = x[:n_joints]
-        # One forward-mode pass gives both the point and its Jacobian.
-        J, ee = jax.jacfwd(lambda q_: (ee_fn(q_), ee_fn(q_)), has_aux=True)(q)
+        def point(q_):
+            e = ee_fn(q_)
+            return e, e
+
+        # One forward-mode pass gives both the point and its Jacobian (ee_fn is called once).
+        J, ee = jax.jacfwd(point, has_aux=True)(q)
         d = ee.astype(dtype) - jnp.asarray(target_ee, dtype)
         J = J.astype(dtype)
         l, d1, d2 = norm_fn(d, weights(dtype, t), l1, l2, alpha)
