@@ -1,0 +1,189 @@
+"""GMM: EM monotonicity, cluster recovery, masks, warm start, NIW inference against numpy."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+
+from gmr_jax.gmm import (gmm_empty, gmm_inference, gmm_loglik, gmm_update, gmm_update_with_info,
+                         niw_prior, num_clusters)
+from gmr_jax.types import GMM
+
+K_MAX, D = 5, 3
+MEANS = np.array([[0.0, 0.0, 0.0], [6.0, 0.0, 1.0], [0.0, 6.0, -1.0]])
+
+
+def _clusters(seed, n_per=120, scale=0.5):
+    rng = np.random.default_rng(seed)
+    return np.concatenate([rng.normal(m, scale, (n_per, D)) for m in MEANS])
+
+
+# One compiled EM for every test of this file (same shapes), max_iterations traced.
+_fit = jax.jit(gmm_update_with_info)
+
+
+def _run(gmm, key, data, mask, k, iters=100):
+    return _fit(gmm, key, jnp.asarray(data), jnp.asarray(mask), jnp.asarray(k), jnp.asarray(iters))
+
+
+def _pad(data, mask, n_total, fill):
+    pad = n_total - data.shape[0]
+    return (np.concatenate([data, np.full((pad, D), fill)]),
+            np.concatenate([mask, np.zeros(pad, bool)]))
+
+
+N_TOTAL = 400  # 360 points + padding, one shape for all tests
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    data, mask = _pad(_clusters(0), np.ones(360, bool), N_TOTAL, 0.0)
+    gmm, info = _run(gmm_empty(K_MAX, D, jnp.float64), jax.random.key(0), data, mask, 3)
+    return data, mask, gmm, info
+
+
+def test_num_clusters_rule():
+    assert int(num_clusters(10, 20, 50)) == 2  # floor 0 -> at least 2
+    assert int(num_clusters(99 * 5, 40, 20)) == 12  # the toolbox's MuJoCo example, iteration 0
+    assert int(num_clusters(99 * 10, 40, 20)) == 20  # capped
+
+
+def test_recovers_separated_clusters(fitted):
+    data, mask, gmm, info = fitted
+    assert bool(info.ok)
+    assert int(info.iterations) < 100  # the (fixed) relative test fires on this negative ll
+    assert float(info.loglik) < 0
+    assert np.asarray(gmm.active).tolist() == [True, True, True, False, False]
+    assert np.all(np.isneginf(np.asarray(gmm.logmass[3:])))
+    mu = np.asarray(gmm.mu[:3])
+    # Match each true mean to its nearest fitted one: a permutation, all close.
+    match = [int(np.argmin(np.linalg.norm(mu - m, axis=1))) for m in MEANS]
+    assert sorted(match) == [0, 1, 2]
+    np.testing.assert_allclose(mu[match], MEANS, atol=0.3)
+    # The clusters are 12 standard deviations apart, so EM must reproduce each group's own sample
+    # mean and (population) covariance + 1e-6·I almost exactly.
+    groups = data[:360].reshape(3, 120, D)
+    np.testing.assert_allclose(mu[match], groups.mean(1), atol=1e-6)
+    for j, i in enumerate(match):
+        cov = np.cov(groups[j].T, bias=True) + 1e-6 * np.eye(D)
+        np.testing.assert_allclose(np.asarray(gmm.sigma[i]), cov, atol=1e-6)
+    np.testing.assert_allclose(np.exp(np.asarray(gmm.logmass[:3])), 1 / 3, atol=1e-6)
+    assert int(gmm.n_points) == 360 and bool(gmm.initialized)
+
+
+def test_em_increases_loglik(fitted):
+    data, mask, _, _ = fitted
+    # Sequential single EM iterations (each a warm-started update with max_iterations 1).
+    g0, _ = _run(gmm_empty(K_MAX, D, jnp.float64), jax.random.key(3), data, mask, 3, 1)
+
+    def body(g, _):
+        g1, _ = gmm_update_with_info(g, jax.random.key(3), jnp.asarray(data), jnp.asarray(mask), 3, 1)
+        return g1, gmm_loglik(g, jnp.asarray(data), jnp.asarray(mask))
+
+    _, lls = jax.jit(lambda g: jax.lax.scan(body, g, None, length=40))(g0)
+    lls = np.asarray(lls)
+    assert np.all(np.diff(lls) >= -1e-9 * np.abs(lls[1:]))
+    assert lls[-1] > lls[0] + 100.0  # it actually moves (from the merged start to three clusters)
+
+
+def test_padding_rows_do_not_change_the_fit(fitted):
+    data, mask, gmm, _ = fitted
+    # Same valid rows, different garbage in the padding (NaN, huge values).
+    data_nan, _ = _pad(data[:360], np.ones(360, bool), N_TOTAL, np.nan)
+    g_nan, info = _run(gmm_empty(K_MAX, D, jnp.float64), jax.random.key(0), data_nan, mask, 3)
+    assert bool(info.ok)
+    for a, b in zip(gmm, g_nan):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
+
+    # Warm start with padding rows interleaved among the valid ones (and shuffled order).
+    rng = np.random.default_rng(1)
+    new = _clusters(5, n_per=100)
+    perm_rows = np.concatenate([new, rng.normal(100.0, 1.0, (N_TOTAL - 300, D))])
+    perm_mask = np.arange(N_TOTAL) < 300
+    order = rng.permutation(N_TOTAL)
+    ref, _ = _run(gmm, jax.random.key(9), *_pad(new, np.ones(300, bool), N_TOTAL, 0.0), 3)
+    got, _ = _run(gmm, jax.random.key(9), perm_rows[order], perm_mask[order], 3)
+    for a, b in zip(ref, got):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-8, atol=1e-10)
+
+
+def test_warm_start_keeps_n_points_and_reinit_on_new_k(fitted):
+    data, mask, gmm, _ = fitted
+    more_mask = np.arange(N_TOTAL) < 380
+    more = np.concatenate([data[:360], _clusters(7, n_per=10)[:20], np.zeros((20, D))])
+    warm, _ = _run(gmm, jax.random.key(1), more, more_mask, 3)
+    assert int(warm.n_points) == 360  # toolbox: N is set only at (re-)initialisation
+    re, _ = _run(gmm, jax.random.key(1), more, more_mask, 4)
+    assert int(re.n_points) == 380
+    assert int(np.sum(np.asarray(re.active))) == 4
+
+
+def test_nonfinite_data_is_flagged(fitted):
+    data, mask, _, _ = fitted
+    bad = data.copy()
+    bad[5, 1] = np.nan  # a *valid* row
+    _, info = _run(gmm_empty(K_MAX, D, jnp.float64), jax.random.key(0), bad, mask, 3)
+    assert not bool(info.ok)
+
+
+def test_inference_hand_case():
+    mu = np.array([[0.0, 0.0], [2.0, 1.0], [0.0, 0.0]])
+    sig = np.array([[[1.0, 0.3], [0.3, 0.5]], [[0.4, -0.1], [-0.1, 0.8]], np.eye(2)])
+    mass = np.array([0.3, 0.7])
+    gmm = GMM(mu=jnp.asarray(mu), sigma=jnp.asarray(sig),
+              logmass=jnp.asarray(np.r_[np.log(mass), -np.inf]),
+              active=jnp.asarray([True, True, False]), n_points=jnp.asarray(50, jnp.int32),
+              initialized=jnp.asarray(True))
+    pts = np.array([[0.1, -0.2], [1.5, 1.2], [3.0, 0.0], [1e3, 1e3]])
+    mask = np.array([True, True, True, False])
+
+    # numpy: posterior of each cluster at each valid point, averaged; moments; hyperparameters.
+    lik = np.stack([mass[i] * multivariate_normal(mu[i], sig[i]).pdf(pts[:3]) for i in range(2)], 1)
+    w = (lik / lik.sum(1, keepdims=True)).mean(0)
+    mu0 = w @ mu[:2]
+    Phi = sum(w[i] * (sig[i] + np.outer(mu[i] - mu0, mu[i] - mu0)) for i in range(2))
+    n0 = (50 - 2 - 2) / 50
+
+    got = gmm_inference(gmm, jnp.asarray(pts), jnp.asarray(mask))
+    np.testing.assert_allclose(got[0], mu0, rtol=1e-12)
+    np.testing.assert_allclose(got[1], Phi, rtol=1e-12)
+    assert float(got[2]) == 1.0
+    np.testing.assert_allclose(float(got[3]), n0, rtol=1e-12)
+
+    s = 2.5  # strength: m = s, n0 = s·n0, Phi = m·Phi
+    got = niw_prior(gmm, jnp.asarray(pts), s, jnp.asarray(mask))
+    np.testing.assert_allclose(got[1], s * Phi, rtol=1e-12)
+    np.testing.assert_allclose([float(got[2]), float(got[3])], [s, s * n0], rtol=1e-12)
+
+    # Log-likelihood against scipy.
+    np.testing.assert_allclose(float(gmm_loglik(gmm, jnp.asarray(pts), jnp.asarray(mask))),
+                               np.log(lik.sum(1)).sum(), rtol=1e-12)
+
+
+def test_vmap_over_conditions_equals_separate_calls():
+    datas = np.stack([_pad(_clusters(s), np.ones(360, bool), N_TOTAL, 0.0)[0] for s in (11, 12)])
+    masks = np.stack([np.arange(N_TOTAL) < 360, np.arange(N_TOTAL) < 300])
+    ks = np.array([3, 2])
+    keys = jax.random.split(jax.random.key(4), 2)
+    empty = gmm_empty(K_MAX, D, jnp.float64)
+    g2 = jax.tree.map(lambda a: jnp.stack([a, a]), empty)
+    batched = jax.jit(jax.vmap(lambda g, k, d, m, kk: gmm_update(g, k, d, m, kk, 100)))(
+        g2, keys, jnp.asarray(datas), jnp.asarray(masks), jnp.asarray(ks))
+    for c in range(2):
+        single, _ = _run(empty, keys[c], datas[c], masks[c], ks[c])
+        for a, b in zip(batched, single):
+            np.testing.assert_allclose(np.asarray(a[c]), np.asarray(b), rtol=1e-9, atol=1e-11)
+
+
+def test_float32_follows_input_dtype():
+    data = _clusters(2).astype(np.float32)
+    gmm, info = jax.jit(gmm_update_with_info, static_argnums=5)(
+        gmm_empty(K_MAX, D, jnp.float32), jax.random.key(0), jnp.asarray(data), None, 3, 100)
+    assert gmm.mu.dtype == jnp.float32 and gmm.sigma.dtype == jnp.float32
+    assert bool(info.ok)
+    mu = np.asarray(gmm.mu[:3])
+    match = [int(np.argmin(np.linalg.norm(mu - m, axis=1))) for m in MEANS]
+    np.testing.assert_allclose(mu[match], MEANS, atol=0.3)
+    mu0, Phi, m, n0 = gmm_inference(gmm, jnp.asarray(data[:5]))
+    assert Phi.dtype == jnp.float32 and n0.dtype == jnp.float32
