@@ -69,8 +69,8 @@ def _leaf_spec(leaf) -> tuple[tuple[int, ...], str, str | None]:
     if dtype is not None and _is_key(dtype):
         data = jax.eval_shape(jax.random.key_data, leaf)
         return tuple(data.shape), np.dtype(data.dtype).name, str(dtype)
-    if isinstance(leaf, jax.ShapeDtypeStruct):
-        return tuple(leaf.shape), np.dtype(leaf.dtype).name, None
+    if dtype is not None and hasattr(leaf, "shape"):  # arrays and ShapeDtypeStructs: no copy
+        return tuple(leaf.shape), np.dtype(dtype).name, None
     arr = np.asarray(leaf)
     return tuple(arr.shape), arr.dtype.name, None
 

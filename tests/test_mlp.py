@@ -1,0 +1,153 @@
+"""The policy interface and the MDGPS baseline MLP: forward pass, loss, variance rule, dtypes."""
+
+import importlib.util
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gmr_jax.config import MLPConfig
+from gmr_jax.policies import PolicyParams, l2_penalty, make_policy, make_sstep_data, noisy_action
+from gmr_jax.policies.base import Normalization, SStepData
+from gmr_jax.policies.mlp import closed_form_variance
+
+dX, dU = 5, 3
+
+
+def _spd(rng, n, count):
+    A = rng.normal(size=(count, n, n))
+    return A @ np.transpose(A, (0, 2, 1)) / n + 0.5 * np.eye(n)
+
+
+def _numpy_forward(params: PolicyParams, x):
+    """Independent forward pass: normalise, Dense + ReLU per hidden layer, linear output."""
+    layers = params.net["params"]
+    h = np.asarray(x) * np.asarray(params.norm.scale) + np.asarray(params.norm.bias)
+    names = sorted(layers, key=lambda s: int(s.split("_")[1]))
+    for i, name in enumerate(names):
+        h = h @ np.asarray(layers[name]["kernel"]) + np.asarray(layers[name]["bias"])
+        if i < len(names) - 1:
+            h = np.maximum(h, 0.0)
+    return h
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return make_policy("mlp", MLPConfig(hidden=(16, 8)))
+
+
+def _init(policy, key, dx, du, dtype=None):
+    return policy.init(jax.random.key(key), dx, du, dtype)
+
+
+def _params_with_norm(policy, key=0):
+    rng = np.random.default_rng(key)
+    params = _init(policy, key, dX, dU)
+    norm = Normalization(scale=jnp.asarray(rng.uniform(0.5, 2.0, dX)),
+                         bias=jnp.asarray(rng.normal(size=dX)), set=jnp.asarray(True))
+    return params._replace(norm=norm)
+
+
+def test_init_shapes_dtypes_and_defaults(policy):
+    params = _init(policy, 0, dX, dU)
+    shapes = jax.tree_util.tree_map(jnp.shape, params.net["params"])
+    assert shapes == {"Dense_0": {"kernel": (dX, 16), "bias": (16,)},
+                      "Dense_1": {"kernel": (16, 8), "bias": (8,)},
+                      "Dense_2": {"kernel": (8, dU), "bias": (dU,)}}
+    for leaf in jax.tree_util.tree_leaves(params):
+        assert leaf.dtype in (jnp.float64, jnp.bool_)  # float64 is the default under x64
+    np.testing.assert_array_equal(params.var, np.full(dU, 0.1))
+    np.testing.assert_array_equal(params.norm.scale, np.ones(dX))
+    np.testing.assert_array_equal(params.norm.bias, np.zeros(dX))
+    assert not bool(params.norm.set)
+    p32 = _init(policy, 0, dX, dU, jnp.float32)
+    assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(p32)} == {jnp.dtype(jnp.float32), jnp.dtype(bool)}
+    u32 = policy.mean(p32, jnp.ones(dX, jnp.float32))
+    assert u32.dtype == jnp.float32 and u32.shape == (dU,)
+
+
+def test_paper_default_architecture():
+    params = _init(make_policy("mlp"), 0, 12, 6)
+    kernels = [params.net["params"][f"Dense_{i}"]["kernel"].shape for i in range(3)]
+    assert kernels == [(12, 64), (64, 64), (64, 6)]
+
+
+def test_toolbox_normal_init():
+    params = _init(make_policy("mlp", MLPConfig(init="normal", init_std=0.01)), 3, 12, 6)
+    layers = params.net["params"]
+    w = np.concatenate([np.ravel(layers[n]["kernel"]) for n in layers])
+    assert abs(np.std(w) - 0.01) < 0.001  # 4992 draws: the std is within ~1% of 0.01
+    assert all(np.all(np.asarray(layers[n]["bias"]) == 0) for n in layers)
+
+
+def test_mean_matches_numpy_and_batches(policy):
+    params = _params_with_norm(policy)
+    x = np.random.default_rng(1).normal(size=(7, dX))
+    u_batch = policy.mean(params, jnp.asarray(x))
+    u_rows = jax.vmap(policy.mean, in_axes=(None, 0))(params, jnp.asarray(x))
+    np.testing.assert_allclose(u_batch, _numpy_forward(params, x), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(u_rows, u_batch, rtol=1e-12, atol=1e-12)
+
+
+def test_loss_equals_numpy(policy):
+    rng = np.random.default_rng(2)
+    params = _params_with_norm(policy)
+    B = 9
+    x = rng.normal(size=(B, dX))
+    tgt = rng.normal(size=(B, dU))
+    prc = _spd(rng, dU, B)
+    data = make_sstep_data(x, tgt, prc)
+    value, aux = policy.loss(params, data, jax.random.key(0))
+    d = _numpy_forward(params, x) - tgt
+    expected = 0.5 * np.mean([d[b] @ prc[b] @ d[b] for b in range(B)])
+    np.testing.assert_allclose(value, expected, rtol=1e-12)
+    np.testing.assert_allclose(aux["action_mse"], np.mean(d ** 2), rtol=1e-12)
+    # β·Σθ² over all weights and biases
+    theta = np.concatenate([np.ravel(leaf) for leaf in jax.tree_util.tree_leaves(params.net)])
+    np.testing.assert_allclose(l2_penalty(params.net), np.sum(theta ** 2), rtol=1e-12)
+
+
+def test_covariance_and_variance_rule(policy):
+    rng = np.random.default_rng(4)
+    params = _init(policy, 0, dX, dU)
+    B = 11
+    prc = _spd(rng, dU, B)
+    data = make_sstep_data(rng.normal(size=(B, dX)), rng.normal(size=(B, dU)), prc)
+    fin = policy.finalize(params, data)  # constant weights: 1/diag(mean precision)
+    np.testing.assert_allclose(fin.var, 1.0 / np.diag(prc.mean(axis=0)), rtol=1e-12)
+    cov = policy.covariance(fin, jnp.zeros(dX))
+    np.testing.assert_allclose(cov, np.diag(1.0 / np.diag(prc.mean(axis=0))), rtol=1e-12)
+    # a zero-weight (padding) row drops out; ent_reg adds 2·ent_reg to the diagonal
+    w = np.ones(B)
+    w[0] = 0.0
+    var = closed_form_variance(jnp.asarray(prc), jnp.asarray(w), ent_reg=0.3)
+    np.testing.assert_allclose(var, 1.0 / (np.diag(prc[1:].mean(axis=0)) + 0.6), rtol=1e-12)
+
+
+def test_noisy_action_covariance(policy):
+    params = _params_with_norm(policy)._replace(var=jnp.array([0.5, 2.0, 1.5]))
+    x = jnp.ones(dX)
+    eps = jax.random.normal(jax.random.key(1), (20000, dU))
+    u = jax.vmap(lambda e: noisy_action(policy, params, x, e))(eps)
+    np.testing.assert_allclose(u.mean(0), policy.mean(params, x), atol=0.05)
+    np.testing.assert_allclose(np.var(np.asarray(u), axis=0), [0.5, 2.0, 1.5], rtol=0.05)
+
+
+def test_make_policy_cache_and_errors():
+    assert make_policy("mlp", MLPConfig()) is make_policy("mlp", MLPConfig())
+    assert make_policy("mlp") is not make_policy("mlp", MLPConfig(hidden=(8,)))
+    with pytest.raises(ValueError, match="allowed values"):
+        make_policy("linear")
+    with pytest.raises(ValueError, match="mlp.activation"):
+        MLPConfig(activation="sigmoid")
+    if importlib.util.find_spec("gmr_jax.policies.gmr") is None:
+        with pytest.raises(NotImplementedError):
+            make_policy("gmr")
+
+
+def test_sstep_data_fill_zeros():
+    data = make_sstep_data(np.ones((4, dX)), np.ones((4, dU)), np.ones((4, dU, dU)))
+    assert isinstance(data, SStepData)
+    assert data.K.shape == (4, dU, dX) and data.k.shape == (4, dU) and data.state_cov.shape == (4, dX, dX)
+    np.testing.assert_array_equal(data.wt, np.ones(4))

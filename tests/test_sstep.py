@@ -1,0 +1,184 @@
+"""The S-step: weight rule, input normalisation, objective, fit of a linear-Gaussian teacher,
+closed-form variance, jit/vmap consistency and dtypes."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gmr_jax.config import MLPConfig, SStepConfig
+from gmr_jax.policies import make_policy, make_sstep_data
+from gmr_jax.sstep import normalize_weights, set_normalization, sstep
+
+dX, dU, B = 4, 2, 100
+X_SCALE = np.array([0.1, 1.0, 3.0, 10.0])
+X_SHIFT = np.array([1.0, -2.0, 0.0, 5.0])
+
+_sstep = jax.jit(sstep, static_argnums=(0, 4))  # one compiled function per (policy, cfg, shapes)
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return make_policy("mlp", MLPConfig(hidden=(32, 32)))
+
+
+def _np_weights(w):
+    """Independent numpy version of the toolbox weight rule."""
+    w = np.asarray(w, float) * len(w) / np.sum(w)
+    mn = np.median(w[w > 1e-2])
+    return np.minimum(w, 2 * mn) / mn
+
+
+def _np_forward(net, scale, bias, x):
+    layers = net["params"]
+    h = x * scale + bias
+    for i in range(len(layers)):
+        h = h @ np.asarray(layers[f"Dense_{i}"]["kernel"]) + np.asarray(layers[f"Dense_{i}"]["bias"])
+        if i < len(layers) - 1:
+            h = np.maximum(h, 0.0)
+    return h
+
+
+def _teacher(seed=0, n=B, wt=None):
+    """Linear-Gaussian teacher u = K x + k with per-row SPD precisions."""
+    rng = np.random.default_rng(seed)
+    K = rng.normal(size=(dU, dX))
+    k = rng.normal(size=dU)
+    x = rng.normal(size=(n, dX)) * X_SCALE + X_SHIFT
+    A = rng.normal(size=(n, dU, dU))
+    P = A @ np.transpose(A, (0, 2, 1)) / dU + np.eye(dU)
+    return make_sstep_data(x, x @ K.T + k, P, wt=wt), (K, k)
+
+
+def test_normalize_weights_hand_cases():
+    np.testing.assert_allclose(normalize_weights(jnp.array([1.0, 1, 1, 4, 0])), [1, 1, 1, 2, 0], rtol=1e-12)
+    # even count: numpy's median averages the middle pair (2/3 and 1) → 5/6; clip at 5/3
+    np.testing.assert_allclose(normalize_weights(jnp.array([1.0, 2, 3, 6])), [0.4, 0.8, 1.2, 2.0], rtol=1e-12)
+    # the toolbox's constant weight 0.01 becomes 1
+    np.testing.assert_allclose(normalize_weights(jnp.full(7, 0.01)), np.ones(7), rtol=1e-12)
+
+
+def test_normalize_weights_matches_numpy():
+    rng = np.random.default_rng(5)
+    for n in (9, 10):
+        w = rng.exponential(size=n)
+        w[:2] = [0.0, 1e-4]  # below the median floor after rescaling
+        np.testing.assert_allclose(jax.jit(normalize_weights)(jnp.asarray(w)), _np_weights(w), rtol=1e-12)
+
+
+def test_set_normalization_fixed_after_first_call(policy):
+    params = policy.init(jax.random.key(0), dX, dU)
+    data, _ = _teacher(1)
+    x = np.array(data.x)
+    x[:, 0] = 3.0  # a constant input: std 0 → floor 1e-3
+    p1 = set_normalization(params, jnp.asarray(x))
+    std = np.maximum(x.std(axis=0), 1e-3)
+    np.testing.assert_allclose(p1.norm.scale, 1.0 / std, rtol=1e-12)
+    np.testing.assert_allclose(p1.norm.bias, -x.mean(axis=0) / std, rtol=1e-12, atol=1e-12)
+    assert bool(p1.norm.set)
+    p2 = set_normalization(p1, jnp.asarray(5.0 * x + 1.0))  # new data: statistics stay
+    np.testing.assert_array_equal(p2.norm.scale, p1.norm.scale)
+    np.testing.assert_array_equal(p2.norm.bias, p1.norm.bias)
+    # zero-weight (padding) rows are left out of the statistics
+    w = np.ones(B)
+    w[50:] = 0.0
+    p3 = set_normalization(params, data.x, jnp.asarray(w))
+    np.testing.assert_allclose(p3.norm.scale, 1.0 / np.asarray(data.x)[:50].std(axis=0), rtol=1e-12)
+
+
+def test_objective_equals_numpy_and_nan_flag(policy):
+    """With a vanishing learning rate the epoch-0 objective is the full-data objective."""
+    rng = np.random.default_rng(2)
+    wt = rng.uniform(0.5, 1.5, B)
+    wt[3], wt[7] = 0.0, 10.0  # a dropped row and a clipped one
+    data, _ = _teacher(2, wt=wt)
+    params = policy.init(jax.random.key(1), dX, dU)
+    cfg = SStepConfig(epochs=1, batch_size=20, lr=1e-30, weight_decay=2e-4)
+    new, metrics = _sstep(policy, params, data, jax.random.key(3), cfg)
+
+    x = np.asarray(data.x)
+    valid = x[wt > 0]  # the zero-weight row is left out of the input statistics
+    scale = 1.0 / valid.std(axis=0)
+    bias = -valid.mean(axis=0) * scale
+    d = _np_forward(params.net, scale, bias, x) - np.asarray(data.tgt_mu)
+    w = _np_weights(wt)
+    P = np.asarray(data.tgt_prc)
+    data_term = 0.5 * np.mean([w[b] * d[b] @ P[b] @ d[b] for b in range(B)])
+    theta = np.concatenate([np.ravel(v) for v in jax.tree_util.tree_leaves(params.net)])
+    assert metrics["loss"].shape == (1,)
+    np.testing.assert_allclose(metrics["data_loss"][0], data_term, rtol=1e-10)
+    np.testing.assert_allclose(metrics["loss"][0], data_term + 2e-4 * np.sum(theta ** 2), rtol=1e-10)
+    assert bool(metrics["finite"]) and bool(metrics["weights_ok"])
+    # variance rule: 1/diag of the weighted mean precision (= mean precision for constant weights)
+    A = np.einsum("b,bij->ij", w, P) / w.sum()
+    np.testing.assert_allclose(new.var, 1.0 / np.diag(A), rtol=1e-12)
+
+    bad = data._replace(tgt_mu=data.tgt_mu.at[5, 0].set(jnp.nan))
+    _, bad_metrics = _sstep(policy, params, bad, jax.random.key(3), cfg)
+    assert not bool(bad_metrics["finite"])
+
+
+def test_fits_linear_gaussian_teacher(policy):
+    data, (K, k) = _teacher(0)
+    params = policy.init(jax.random.key(0), dX, dU)
+    cfg = SStepConfig(epochs=100, batch_size=20, lr=1e-2, weight_decay=0.0)
+    new, metrics = _sstep(policy, params, data, jax.random.key(1), cfg)
+    assert metrics["loss"].shape == (100,)
+    assert float(metrics["loss"][-1]) < 1e-3 * float(metrics["loss"][0])
+    err = np.asarray(policy.mean(new, data.x)) - np.asarray(data.tgt_mu)
+    rel = np.sqrt(np.mean(err ** 2)) / np.std(np.asarray(data.tgt_mu))
+    assert rel < 0.03, rel
+    # the fit generalises to fresh states of the same distribution
+    xt = np.random.default_rng(9).normal(size=(200, dX)) * X_SCALE + X_SHIFT
+    ut = np.asarray(policy.mean(new, jnp.asarray(xt)))
+    assert np.sqrt(np.mean((ut - (xt @ K.T + k)) ** 2)) / np.std(np.asarray(data.tgt_mu)) < 0.08
+    np.testing.assert_allclose(new.var, 1.0 / np.diag(np.asarray(data.tgt_prc).mean(0)), rtol=1e-12)
+    # warm start: a second S-step on shifted data keeps the first statistics
+    shifted = data._replace(x=data.x + 100.0)
+    again, _ = _sstep(policy, new, shifted, jax.random.key(2), cfg)
+    np.testing.assert_array_equal(again.norm.scale, new.norm.scale)
+    np.testing.assert_array_equal(again.norm.bias, new.norm.bias)
+
+
+def test_jit_equals_nojit_and_vmap_equals_loop(policy):
+    data, _ = _teacher(3)
+    cfg = SStepConfig(epochs=3, batch_size=20)
+    keys = jax.random.split(jax.random.key(7), 3)
+    inits = [policy.init(k, dX, dU) for k in keys]
+
+    eager, eager_m = sstep(policy, inits[0], data, keys[0], cfg)
+    jitted, jitted_m = _sstep(policy, inits[0], data, keys[0], cfg)
+    for a, b in zip(jax.tree_util.tree_leaves((eager, eager_m)), jax.tree_util.tree_leaves((jitted, jitted_m))):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+    batched_params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *inits)
+    run = jax.jit(jax.vmap(functools.partial(sstep, policy, data=data, cfg=cfg)))
+    vp, vm = run(batched_params, key=keys)
+    for i in range(3):
+        single = _sstep(policy, inits[i], data, keys[i], cfg)
+        for a, b in zip(jax.tree_util.tree_leaves((vp, vm)), jax.tree_util.tree_leaves(single)):
+            np.testing.assert_allclose(a[i], b, rtol=1e-9, atol=1e-12)
+    # different seeds give different networks
+    w0 = vp.net["params"]["Dense_0"]["kernel"]
+    assert not np.allclose(w0[0], w0[1])
+
+
+def test_float32_follows_input_dtype(policy):
+    data, _ = _teacher(4)
+    data32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), data)
+    params = policy.init(jax.random.key(0), dX, dU, dtype=jnp.float32)
+    new, metrics = _sstep(policy, params, data32, jax.random.key(0), SStepConfig(epochs=2))
+    dtypes = {leaf.dtype for leaf in jax.tree_util.tree_leaves(new)}
+    assert dtypes == {jnp.dtype(jnp.float32), jnp.dtype(bool)}
+    assert metrics["loss"].dtype == jnp.float32 and bool(metrics["finite"])
+
+
+def test_too_few_rows_and_bad_config(policy):
+    data, _ = _teacher(0, n=10)
+    params = policy.init(jax.random.key(0), dX, dU)
+    with pytest.raises(ValueError, match="batch_size"):
+        sstep(policy, params, data, jax.random.key(0), SStepConfig(batch_size=20))
+    with pytest.raises(ValueError, match="sstep.epochs"):
+        SStepConfig(epochs=0)
