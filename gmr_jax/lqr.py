@@ -148,10 +148,12 @@ def _riccati(Fm: Array, fv: Array, Cm: Array, cv: Array) -> tuple[LinearGaussian
         Q = _sym(Q)
         Quu, Qux, Qxu = Q[dX:, dX:], Q[dX:, :dX], Q[:dX, dX:]
         low = jnp.linalg.cholesky(Quu)  # NaN when Q_uu is not PD
-        covar = _sym(cho_solve((low, True), eye_u))
+        # Q_uu⁻¹ [I, Q_ux, q_u] by one pair of triangular solves (smaller program than three).
+        sol = cho_solve((low, True), jnp.concatenate([eye_u, Qux, q[dX:, None]], axis=1))
+        covar = _sym(sol[:, :dU])
         chol_cov = _chol_upper(covar)
-        K = -cho_solve((low, True), Qux)
-        k = -cho_solve((low, True), q[dX:])
+        K = -sol[:, dU:dU + dX]
+        k = -sol[:, dU + dX]
         V_new = _sym(Q[:dX, :dX] + Qxu @ K)
         v_new = q[:dX] + Qxu @ k
         # A failure of the covariance's Cholesky (possible in float32 for an ill-conditioned
@@ -227,22 +229,26 @@ def lqr_backward(dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolic
         fc = kl_augmented_cost(cost, anchor, e)
         return _riccati(dyn.Fm, dyn.fv, fc.Cm, fc.cv)
 
-    policy, fail = attempt(eta0)
-
+    # One loop for the first try and the repairs (so the recursion is traced once): δ runs
+    # 0, del0, 2·del0, 4·del0, … and the k-th try uses η₀ + δ.
     def cond(state):
-        e, _, _, failed = state
+        e, delta, _, failed, started = state
         # Stop on success, or once η reached max_eta (the toolbox's ValueError point).
-        return failed & (e < max_eta)
+        return ~started | (failed & (e < max_eta))
 
     def body(state):
-        _, delta, _, _ = state
+        _, delta, _, _, started = state
         e = eta0 + delta
         pol, failed = attempt(e)
-        # A "success" at η ≥ max_eta still counts as failure: the toolbox raises before trying.
-        return e, 2.0 * delta, pol, failed | (e >= max_eta)
+        # A repair that reaches max_eta counts as failure even if its sweep succeeded: the
+        # toolbox raises before trying it. (η₀ ≥ max_eta itself is tried, as in the toolbox.)
+        failed = failed | (started & (e >= max_eta))
+        delta = jnp.where(started, 2.0 * delta, jnp.asarray(cfg.del0, dtype))
+        return e, delta, pol, failed, jnp.asarray(True)
 
-    state = (eta0, jnp.asarray(cfg.del0, dtype), policy, fail)
-    eta_used, _, policy, fail = lax.while_loop(cond, body, state)
+    placeholder = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, dtype), anchor)
+    state = (eta0, jnp.zeros((), dtype), placeholder, jnp.asarray(True), jnp.asarray(False))
+    eta_used, _, policy, fail, _ = lax.while_loop(cond, body, state)
     return policy, eta_used, ~fail
 
 
@@ -313,9 +319,10 @@ def traj_kl(marginals: Marginals, new: LinearGaussianPolicy,
     def whiten(b):  # Ū⁻ᵀ b, so that bᵀ P̄ b = ‖Ū⁻ᵀ b‖²
         return solve_triangular(Ub, b, trans="T", lower=False)
 
-    A = whiten(_mT(Un))  # tr(P̄ S_new) = ‖Ū⁻ᵀ U_newᵀ‖²_F
-    z = whiten(d[..., None])[..., 0]
-    Y = whiten(dK)  # tr(ΔKᵀ P̄ ΔK Σ_x) = tr(Y Σ_x Yᵀ)
+    W = whiten(jnp.concatenate([_mT(Un), d[..., None], dK], axis=-1))  # one solve for all
+    A = W[..., :dU]  # tr(P̄ S_new) = ‖Ū⁻ᵀ U_newᵀ‖²_F
+    z = W[..., dU]  # dᵀP̄d = ‖Ū⁻ᵀ d‖²
+    Y = W[..., dU + 1:]  # tr(ΔKᵀ P̄ ΔK Σ_x) = tr(Y Σ_x Yᵀ)
     logdet_b = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Ub, axis1=-2, axis2=-1))), axis=-1)
     logdet_n = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Un, axis1=-2, axis2=-1))), axis=-1)
     kl = 0.5 * (jnp.sum(A * A, axis=(-2, -1)) - dU + logdet_b - logdet_n
@@ -432,7 +439,7 @@ def eta_search(dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolicy,
                 eta_tr.at[itr].set(eta_used), kl_tr.at[itr].set(kl))
 
     # Placeholders with the output shapes; the loop body always runs at least once.
-    zero_pol = jax.tree_util.tree_map(jnp.zeros_like, anchor)
+    zero_pol = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, dtype), anchor)
     zero_marg = Marginals(mu=jnp.zeros((T, dX + dU), dtype),
                           sigma=jnp.zeros((T, dX + dU, dX + dU), dtype))
     eta0 = jnp.asarray(eta0, dtype)

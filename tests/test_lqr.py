@@ -19,6 +19,7 @@ backward_jit = jax.jit(lqr.lqr_backward, static_argnums=4)
 forward_jit = jax.jit(lqr.lqr_forward)
 kl_jit = jax.jit(lqr.traj_kl)
 cost_jit = jax.jit(lqr.estimate_cost)
+init_lqr_jit = jax.jit(lqr.init_lqr, static_argnums=(1, 2, 3, 4))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -343,32 +344,55 @@ def _random_problems(seeds, k_scale=1.0):
     return [jax.tree_util.tree_map(lambda *a: jnp.stack(a), *parts) for parts in zip(*probs)]
 
 
-def test_eta_search_meets_kl_target_on_random_problems():
+@pytest.fixture(scope="module")
+def batched_search():
+    """η search on 6 random problems at once (vmap over a leading condition axis)."""
     dyn, cost, anchor = _random_problems(range(10, 16))
     eps = jnp.asarray([0.2 * T * m for m in (0.1, 0.5, 1.0, 2.0, 5.0, 0.3)])
-    eta0 = jnp.ones(6)
-    pol, marg, eta, kl_sum, info = jax.vmap(eta_search_jit, in_axes=(0, 0, 0, 0, 0, None))(
-        dyn, cost, anchor, eta0, eps, CFG)
+    eta0 = jnp.asarray([1.0, 1.0, 3.0, 1.0, 0.01, 1e3])
+    out = jax.vmap(eta_search_jit, in_axes=(0, 0, 0, 0, 0, None))(dyn, cost, anchor, eta0, eps, CFG)
+    return (dyn, cost, anchor, eta0, eps), out
+
+
+def _sub(tree, m):
+    return jax.tree_util.tree_map(lambda a: a[m], tree)
+
+
+def test_eta_search_meets_kl_target_on_random_problems(batched_search):
+    (dyn, cost, anchor, eta0, eps), (pol, marg, eta, kl_sum, info) = batched_search
     assert bool(jnp.all(info.ok)) and bool(jnp.all(info.converged))
     assert bool(jnp.all(jnp.abs(kl_sum - eps) < 0.1 * eps))
     np.testing.assert_array_equal(eta, info.eta_used)  # converged: the η of the controller
-    # kl_sum is the KL of the returned controller under its own marginals.
-    for m in range(6):
-        sub = lambda tree: jax.tree_util.tree_map(lambda a: a[m], tree)
-        np.testing.assert_allclose(kl_sum[m], jnp.sum(kl_jit(forward_jit(sub(dyn), sub(pol)), sub(pol), sub(anchor))),
-                                   rtol=1e-10)
-        np.testing.assert_allclose(sub(marg).mu, forward_jit(sub(dyn), sub(pol)).mu, rtol=1e-12)
+    for m in range(len(eps)):
+        # kl_sum is the KL of the returned controller under its own marginals ...
+        d, p, a = _sub(dyn, m), _sub(pol, m), _sub(anchor, m)
+        np.testing.assert_allclose(kl_sum[m], jnp.sum(kl_jit(forward_jit(d, p), p, a)), rtol=1e-10)
+        np.testing.assert_allclose(_sub(marg, m).mu, forward_jit(d, p).mu, rtol=1e-12)
+        # ... and the η sequence follows the bracket rules of §2.4.
         n = int(info.iterations[m])
-        np.testing.assert_allclose(info.eta_trace[m, :n], _replay_bracket(np.asarray(info.kl_trace[m, :n]), 1.0, float(eps[m])),
+        np.testing.assert_allclose(info.eta_trace[m, :n],
+                                   _replay_bracket(np.asarray(info.kl_trace[m, :n]), float(eta0[m]), float(eps[m])),
                                    rtol=1e-12)
+
+
+def test_eta_search_vmap_equals_separate_and_jit_equals_eager(batched_search):
+    (dyn, cost, anchor, eta0, eps), batched = batched_search
+    for m in range(2):
+        args = (_sub(dyn, m), _sub(cost, m), _sub(anchor, m), float(eta0[m]), float(eps[m]), CFG)
+        single = eta_search_jit(*args)
+        for a, b in zip(jax.tree_util.tree_leaves(_sub(batched, m)), jax.tree_util.tree_leaves(single)):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+        if m == 0:
+            eager = lqr.eta_search(*args)
+            for a, b in zip(jax.tree_util.tree_leaves(single), jax.tree_util.tree_leaves(eager)):
+                np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
 def test_eta_search_brackets_far_anchor():
     # Anchor offsets far from the optimum: KL at η = 1 ≫ ε, so η must grow by ×10 steps
     # until the target is bracketed, then bisect geometrically.
     dyn, cost, anchor = _random_problems([20], k_scale=30.0)
-    sub = lambda tree: jax.tree_util.tree_map(lambda a: a[0], tree)
-    dyn, cost, anchor = sub(dyn), sub(cost), sub(anchor)
+    dyn, cost, anchor = _sub(dyn, 0), _sub(cost, 0), _sub(anchor, 0)
     eps = 0.2 * T
     pol, marg, eta, kl_sum, info = eta_search_jit(dyn, cost, anchor, 1.0, eps, CFG)
     n = int(info.iterations)
@@ -381,20 +405,6 @@ def test_eta_search_brackets_far_anchor():
     assert np.all(etas[m + 1:] > etas[m - 1]) and np.all(etas[m + 1:] < etas[m])  # inside bracket
     np.testing.assert_allclose(etas, _replay_bracket(kls, 1.0, eps), rtol=1e-12)
     assert np.all(np.isnan(np.asarray(info.eta_trace[n:])))
-
-
-def test_eta_search_vmap_equals_separate_and_jit_equals_eager():
-    dyn, cost, anchor = _random_problems([30, 31])
-    eta0, eps = jnp.asarray([1.0, 3.0]), jnp.asarray([1.0, 2.5])
-    batched = jax.vmap(eta_search_jit, in_axes=(0, 0, 0, 0, 0, None))(dyn, cost, anchor, eta0, eps, CFG)
-    for m in range(2):
-        sub = lambda tree: jax.tree_util.tree_map(lambda a: a[m], tree)
-        single = eta_search_jit(sub(dyn), sub(cost), sub(anchor), eta0[m], eps[m], CFG)
-        eager = lqr.eta_search(sub(dyn), sub(cost), sub(anchor), eta0[m], eps[m], CFG)
-        for a, b, c in zip(jax.tree_util.tree_leaves(sub(batched)), jax.tree_util.tree_leaves(single),
-                           jax.tree_util.tree_leaves(eager)):
-            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
-            np.testing.assert_allclose(b, c, rtol=1e-9, atol=1e-12)
 
 
 def test_eta_search_float32_follows_dtype():
@@ -421,7 +431,7 @@ def test_cstep_two_conditions_jaco_sizes_compiles_once():
         for m in range(2):
             rng = np.random.default_rng(seed * 10 + m)
             x0 = np.concatenate([rng.uniform(-1, 1, dXj // 2), np.zeros(dXj // 2)])
-            anchor = lqr.init_lqr(jnp.asarray(x0), Tj, dUj, 0.05, cfg)
+            anchor = init_lqr_jit(jnp.asarray(x0), Tj, dUj, 0.05, cfg)
             Fd, fc = lqr.guess_dynamics(jnp.asarray(cfg.init_gains), jnp.zeros(dUj), dXj, dUj, 0.05)
             Fm = np.broadcast_to(np.asarray(Fd), (Tj, dXj, dXj + dUj)) + 1e-3 * rng.standard_normal((Tj, dXj, dXj + dUj))
             dyn = Dynamics(jnp.asarray(Fm), jnp.broadcast_to(fc, (Tj, dXj)), jnp.broadcast_to(1e-4 * jnp.eye(dXj), (Tj, dXj, dXj)),
@@ -449,7 +459,7 @@ def test_init_lqr_on_guessed_double_integrator():
     cfg = InitLQRConfig(init_var=2.0, stiffness=1.5, stiffness_vel=0.25, final_weight=50.0,
                         init_acc=(0.0, 0.0), init_gains=(0.5, 2.0))
     x0 = np.array([0.3, -0.7, 0.0, 0.0, 0.9])  # at rest; the 5th (extra) state has no cost
-    pol = lqr.init_lqr(jnp.asarray(x0), Ti, dU, dt, cfg)
+    pol = init_lqr_jit(jnp.asarray(x0), Ti, dU, dt, cfg)
     # The guessed model, written out.
     g = np.array([0.5, 2.0])
     Fd = np.zeros((dX, dX + dU))
