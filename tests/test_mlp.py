@@ -136,6 +136,7 @@ def test_noisy_action_covariance(policy):
 
 def test_make_policy_cache_and_errors():
     assert make_policy("mlp", MLPConfig()) is make_policy("mlp", MLPConfig())
+    assert make_policy("mlp") is make_policy("mlp", MLPConfig())
     assert make_policy("mlp") is not make_policy("mlp", MLPConfig(hidden=(8,)))
     with pytest.raises(ValueError, match="allowed values"):
         make_policy("linear")

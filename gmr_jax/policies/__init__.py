@@ -21,20 +21,27 @@ __all__ = ["POLICIES", "Normalization", "Policy", "PolicyParams", "SStepData", "
            "make_policy", "make_sstep_data", "noisy_action", "normalize_input"]
 
 
-@functools.lru_cache(maxsize=None)
 def make_policy(name: str, cfg=None) -> Policy:
     """The policy ``name`` ("mlp" or "gmr") built from its (frozen, hashable) configuration.
 
     Args:
       name: "mlp" (MDGPS baseline, cfg: MLPConfig, default MLPConfig()) or "gmr" (cfg: the GMR
-        configuration of ``policies/gmr.py``).
+        configuration of ``policies/gmr.py``, default its own).
+    Returns: the cached Policy for (name, cfg): equal configurations give the same object.
     Raises:
       ValueError: unknown name. NotImplementedError: "gmr" before ``policies/gmr.py`` exists.
     """
-    if name == "mlp":
+    if name == "mlp" and cfg is None:
         from gmr_jax.config import MLPConfig
+        cfg = MLPConfig()
+    return _make_policy(name, cfg)
+
+
+@functools.lru_cache(maxsize=None)
+def _make_policy(name: str, cfg) -> Policy:
+    if name == "mlp":
         from gmr_jax.policies.mlp import make_mlp_policy
-        return make_mlp_policy(MLPConfig() if cfg is None else cfg)
+        return make_mlp_policy(cfg)
     if name == "gmr":
         try:
             gmr = importlib.import_module("gmr_jax.policies.gmr")
