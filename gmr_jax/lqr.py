@@ -32,6 +32,7 @@ Array = jax.Array
 __all__ = [
     "EtaSearchInfo",
     "bracket_update",
+    "check_eta_search",
     "estimate_cost",
     "eta_search",
     "guess_dynamics",
@@ -451,6 +452,30 @@ def eta_search(dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolicy,
     info = EtaSearchInfo(iterations=itr, converged=converged, ok=ok, eta_used=eta_used,
                          kl_per_step=kl_t, eta_trace=eta_tr, kl_trace=kl_tr)
     return policy, marg, eta, jnp.sum(kl_t), info
+
+
+def check_eta_search(info: EtaSearchInfo, dyn: Dynamics | None = None) -> None:
+    """Host-side check of ``eta_search`` results (any leading condition axes); raises ValueError.
+
+    The toolbox raises inside its backward pass when the non-PD repair reaches η ≥ 1e16,
+    first checking the dynamics for NaNs; under ``jit`` that becomes ``info.ok`` = False, and
+    this function turns it back into the toolbox's error, naming the failed conditions.
+    """
+    import numpy as np  # host-side only
+
+    ok = np.asarray(info.ok)
+    if ok.all():
+        return
+    bad = [tuple(int(i) for i in idx) for idx in zip(*np.nonzero(~ok))] if ok.ndim else [()]
+    if dyn is not None:
+        Fm, fv = np.asarray(dyn.Fm), np.asarray(dyn.fv)
+        nan = (np.isnan(Fm).reshape(ok.shape + (-1,)).any(-1)
+               | np.isnan(fv).reshape(ok.shape + (-1,)).any(-1))
+        if (nan & ~ok).any():
+            raise ValueError(f"NaNs encountered in dynamics (conditions {bad})")
+    raise ValueError(f"Failed to find PD solution even for very large eta, or the KL was not "
+                     f"finite (conditions {bad}); check that dynamics and cost are reasonably "
+                     "well conditioned")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -20,6 +20,9 @@ forward_jit = jax.jit(lqr.lqr_forward)
 kl_jit = jax.jit(lqr.traj_kl)
 cost_jit = jax.jit(lqr.estimate_cost)
 init_lqr_jit = jax.jit(lqr.init_lqr, static_argnums=(1, 2, 3, 4))
+init_pd_jit = jax.jit(lqr.init_pd, static_argnums=(1, 2),
+                      static_argnames=("init_var", "pos_gains", "vel_gains_mult", "dQ"))
+augment_jit = jax.jit(lqr.kl_augmented_cost)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -187,7 +190,7 @@ def test_kl_augmented_cost_is_negative_log_anchor():
     rng = np.random.default_rng(2)
     cost, anchor = random_cost(rng), random_policy(rng)
     eta = 0.37
-    aug = lqr.kl_augmented_cost(cost, anchor, eta)
+    aug = augment_jit(cost, anchor, eta)
     # ½yᵀM̄y + yᵀv̄ + c̄ must equal −log π̄(u|x) − ½log|2πS̄| at random y.
     for t in (0, T - 1):
         y = rng.standard_normal(DX + DU)
@@ -241,6 +244,15 @@ def test_non_pd_failure_and_nan_are_flagged():
     assert not bool(ok) and float(eta_used) >= CFG.max_eta
     *_, info = eta_search_jit(bad, cost, anchor, 1.0, 1.0, CFG)
     assert not bool(info.ok) and not bool(info.converged) and int(info.iterations) == 1
+    with pytest.raises(ValueError, match="NaNs encountered in dynamics"):
+        lqr.check_eta_search(info, bad)
+    with pytest.raises(ValueError, match="PD solution"):
+        lqr.check_eta_search(info)
+    good = info._replace(ok=jnp.asarray(True))
+    batched = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), info, good)
+    with pytest.raises(ValueError, match=r"conditions \[\(0,\)\]"):
+        lqr.check_eta_search(batched)
+    lqr.check_eta_search(info._replace(ok=jnp.asarray(True)))  # no error
 
 
 # ---------------------------------------------------------------------------------------------
@@ -268,9 +280,11 @@ def test_forward_kl_and_cost_match_monte_carlo():
     kl = np.asarray(kl_jit(marg, pol, anchor))
     np.testing.assert_allclose(kl, np_toolbox_kl(np.asarray(marg.mu), np.asarray(marg.sigma), pol, anchor),
                                rtol=1e-8, atol=1e-10)
-    lr = np.stack([np_logpdf(U[:, t], X[:, t] @ np.asarray(pol.K[t]).T + np.asarray(pol.k[t]), np.asarray(pol.pol_covar[t]))
-                   - np_logpdf(U[:, t], X[:, t] @ np.asarray(anchor.K[t]).T + np.asarray(anchor.k[t]), np.asarray(anchor.pol_covar[t]))
-                   for t in range(T)], 1)  # [N, T]
+    def logp(p, t):
+        mean = X[:, t] @ np.asarray(p.K[t]).T + np.asarray(p.k[t])
+        return np_logpdf(U[:, t], mean, np.asarray(p.pol_covar[t]))
+
+    lr = np.stack([logp(pol, t) - logp(anchor, t) for t in range(T)], 1)  # [N, T]
     assert np.all(np.abs(lr.mean(0) - kl) < 5 * lr.std(0) / np.sqrt(N))
     tot = lr.sum(1)
     assert abs(tot.mean() - kl.sum()) < 5 * tot.std() / np.sqrt(N)
@@ -370,9 +384,8 @@ def test_eta_search_meets_kl_target_on_random_problems(batched_search):
         np.testing.assert_allclose(_sub(marg, m).mu, forward_jit(d, p).mu, rtol=1e-12)
         # ... and the η sequence follows the bracket rules of §2.4.
         n = int(info.iterations[m])
-        np.testing.assert_allclose(info.eta_trace[m, :n],
-                                   _replay_bracket(np.asarray(info.kl_trace[m, :n]), float(eta0[m]), float(eps[m])),
-                                   rtol=1e-12)
+        expect = _replay_bracket(np.asarray(info.kl_trace[m, :n]), float(eta0[m]), float(eps[m]))
+        np.testing.assert_allclose(info.eta_trace[m, :n], expect, rtol=1e-12)
 
 
 def test_eta_search_vmap_equals_separate_and_jit_equals_eager(batched_search):
@@ -433,8 +446,10 @@ def test_cstep_two_conditions_jaco_sizes_compiles_once():
             x0 = np.concatenate([rng.uniform(-1, 1, dXj // 2), np.zeros(dXj // 2)])
             anchor = init_lqr_jit(jnp.asarray(x0), Tj, dUj, 0.05, cfg)
             Fd, fc = lqr.guess_dynamics(jnp.asarray(cfg.init_gains), jnp.zeros(dUj), dXj, dUj, 0.05)
-            Fm = np.broadcast_to(np.asarray(Fd), (Tj, dXj, dXj + dUj)) + 1e-3 * rng.standard_normal((Tj, dXj, dXj + dUj))
-            dyn = Dynamics(jnp.asarray(Fm), jnp.broadcast_to(fc, (Tj, dXj)), jnp.broadcast_to(1e-4 * jnp.eye(dXj), (Tj, dXj, dXj)),
+            shape = (Tj, dXj, dXj + dUj)
+            Fm = np.broadcast_to(np.asarray(Fd), shape) + 1e-3 * rng.standard_normal(shape)
+            dyn = Dynamics(jnp.asarray(Fm), jnp.broadcast_to(fc, (Tj, dXj)),
+                           jnp.broadcast_to(1e-4 * jnp.eye(dXj), (Tj, dXj, dXj)),
                            jnp.asarray(x0), 1e-6 * jnp.eye(dXj))
             target = x0 + np.concatenate([rng.uniform(-0.5, 0.5, dXj // 2), np.zeros(dXj // 2)])
             w = np.concatenate([np.ones(dXj // 2), 0.01 * np.ones(dXj // 2), 1e-3 * np.ones(dUj)])
@@ -489,7 +504,7 @@ def test_init_lqr_on_guessed_double_integrator():
 
 def test_init_pd():
     x0 = jnp.asarray([0.2, -0.4, 0.5, 0.1, 7.0])
-    pol = lqr.init_pd(x0, 3, 2, init_var=4.0, pos_gains=10.0, vel_gains_mult=0.01)
+    pol = init_pd_jit(x0, 3, 2, init_var=4.0, pos_gains=10.0, vel_gains_mult=0.01)
     K = -10.0 * np.array([[1, 0, 0.01, 0, 0], [0, 1, 0, 0.01, 0]])
     np.testing.assert_allclose(pol.K, np.broadcast_to(K, (3, 2, 5)))
     np.testing.assert_allclose(np.einsum("tij,j->ti", pol.K, x0) + pol.k, 0.0, atol=1e-14)
