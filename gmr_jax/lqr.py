@@ -10,7 +10,8 @@ factor U with pol_covar = Uᵀ U; quadratic costs are in absolute coordinates.
 
 Numerical failures never raise inside ``jit``: ``lqr_backward`` and ``eta_search`` return an
 ``ok`` flag (False where the toolbox raises its ValueError, i.e. when the non-PD repair pushes
-η to ``max_eta``, or where a NaN appears). Callers check it on the host.
+η to ``max_eta``, or where a NaN appears). Callers check it on the host
+(``check_eta_search`` raises the toolbox's errors).
 
 All functions follow the dtype of their array inputs (float32 on GPU, float64 in tests).
 """
