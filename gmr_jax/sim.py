@@ -1,0 +1,435 @@
+"""The simulated Jaco 2: load the MJCF, step it at 20 Hz, roll out controllers.
+
+State x = [q, q̇] ([dX] = [12]: 6 Kinova actuator angles in rad, 6 velocities in rad/s), action
+u = 6 joint torques (N·m) held for one control step of ``SimConfig.control_dt`` (0.05 s), which
+is ``SimConfig.substeps`` physics steps. The plant adds gravity compensation (MuJoCo body
+``gravcomp``, which MJX honours: ``mjx/_src/passive.py``) unless configured off, and saturates
+the commanded torques at the actuator peak torques.
+
+Two interchangeable backends run the same MJCF behind the same functions:
+
+* ``"mjx"``: MuJoCo MJX with ``impl='jax'``, pure JAX (default where JAX has a GPU).
+  Differentiable (``jax.jacfwd`` through :func:`step` works).
+* ``"mujoco"``: C MuJoCo on the host, called once per control step through
+  ``jax.pure_callback`` with ``vmap_method="broadcast_all"``, so one callback receives the
+  whole (possibly nested) batch and steps it with ``mujoco.rollout`` (threaded). It stays
+  jittable and vmappable, and is 2-3 orders of magnitude faster than MJX on a CPU. Not
+  differentiable (no JVP rule for the callback).
+
+Everything here is a pure function of arrays; :func:`rollout` works under ``jax.jit`` and under
+any number of nested ``jax.vmap``s over (policy, x0, eps).
+
+A rollout that diverges (non-finite state, or C MuJoCo's automatic reset after a bad
+acceleration) yields NaN from that step on, with both backends; :func:`diverged` flags it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import pathlib
+import threading
+from typing import Callable, NamedTuple, Union
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from gmr_jax import types
+from gmr_jax.config import SimConfig
+
+Array = jax.Array
+
+MJCF_DIR = pathlib.Path(__file__).resolve().parent.parent / "jaco_mjcf"
+ARM_JOINTS = tuple(f"joint_{i}" for i in range(1, 7))
+EE_SITE = "end_effector"
+
+# A policy callable maps (t [] int, x [dX], eps_t [dU]) to u [dU].
+PolicyFn = Callable[[Array, Array, Array], Array]
+Policy = Union[types.LinearGaussianPolicy, PolicyFn]
+
+
+class MJCFError(ValueError):
+    """The MJCF file is missing, malformed or lacks what the simulation needs."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+
+
+def scene_path(scene: str) -> pathlib.Path:
+    """The MJCF file of a scene: ``"reach"`` → ``jaco_mjcf/reach.xml``; a path is taken as is."""
+    if scene.endswith(".xml") or os.sep in scene or "/" in scene:
+        return pathlib.Path(scene).expanduser().resolve()
+    return MJCF_DIR / f"{scene}.xml"
+
+
+class _Chain(NamedTuple):
+    """Static data of the kinematic chain from the world to the end-effector site (numpy)."""
+
+    body_pos: tuple  # per body on the chain, root first: [3]
+    body_quat: tuple  # [4] (w, x, y, z)
+    joints: tuple  # per body: tuple of (qpos address, axis [3], anchor [3]) of its hinges
+    site_pos: np.ndarray  # [3] site position in its body frame
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Sim:
+    """A loaded plant. Hashes by identity, so it can be a static argument of ``jax.jit``.
+
+    Attributes:
+      config: the SimConfig it was made from.
+      path: the scene's MJCF file.
+      backend: the resolved backend, "mjx" or "mujoco".
+      model: the compiled C ``MjModel`` (timestep, gravity compensation and control limits set
+        from the config).
+      dX, dU: state and action sizes (12, 6 for the Jaco 2).
+      nq: number of joint angles (6).
+      torque_limit: [dU] numpy array of actuator peak torques (N·m), the saturation bounds.
+    """
+
+    config: SimConfig
+    path: pathlib.Path
+    backend: str
+    model: mujoco.MjModel
+    dX: int
+    dU: int
+    nq: int
+    torque_limit: np.ndarray
+    chain: _Chain
+    _cache: dict = dataclasses.field(default_factory=dict, repr=False)
+    _lock: threading.Lock = dataclasses.field(default_factory=threading.Lock, repr=False)
+
+    # -- MJX model and data template (built lazily, per precision) --------------------------
+    def mjx_model_and_data(self):
+        """(mjx.Model, mjx.Data template) in the current default float precision.
+
+        Built eagerly (never as tracers, even when first asked for inside a ``jit`` trace) and
+        cached per precision, because ``put_model`` follows ``jax_enable_x64``.
+        """
+        key = ("mjx", bool(jax.config.jax_enable_x64))
+        if key not in self._cache:
+            from mujoco import mjx  # imported lazily: it is slow to import and the C path skips it
+
+            with self._lock, jax.ensure_compile_time_eval():
+                if key not in self._cache:
+                    mx = mjx.put_model(self.model, impl="jax")
+                    self._cache[key] = (mx, mjx.make_data(mx, impl="jax"))
+        return self._cache[key]
+
+    # -- host stepper for the mujoco backend ----------------------------------------------
+    def _host(self):
+        if "host" not in self._cache:
+            with self._lock:
+                if "host" not in self._cache:
+                    self._cache["host"] = _HostStepper(self.model, self.config.substeps)
+        return self._cache["host"]
+
+
+def _validate(m: mujoco.MjModel, path: pathlib.Path) -> None:
+    def fail(msg):
+        raise MJCFError(f"MJCF {path}: {msg}")
+
+    for name in ARM_JOINTS:
+        jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid < 0:
+            fail(f"no joint named {name!r} (the arm needs joint_1 … joint_6)")
+        if m.jnt_type[jid] != mujoco.mjtJoint.mjJNT_HINGE:
+            fail(f"joint {name!r} must be a hinge")
+    if m.nq != m.nv:
+        fail(f"nq={m.nq} != nv={m.nv}: the state [q, q̇] assumes hinge/slide joints only")
+    if m.nu < 1:
+        fail("no actuators")
+    if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, EE_SITE) < 0:
+        fail(f"no site named {EE_SITE!r}")
+    for i in range(m.nu):
+        if m.actuator_trntype[i] != mujoco.mjtTrn.mjTRN_JOINT:
+            fail(f"actuator {i} does not drive a joint")
+        lo, hi = m.actuator_ctrlrange[i]
+        if not (m.actuator_ctrllimited[i] and np.isclose(lo, -hi) and hi > 0):
+            fail(f"actuator {i} needs a symmetric ctrlrange (the torque limit), got [{lo}, {hi}]")
+
+
+def _chain(m: mujoco.MjModel) -> _Chain:
+    sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, EE_SITE)
+    bodies = []
+    b = int(m.site_bodyid[sid])
+    while b != 0:
+        bodies.append(b)
+        b = int(m.body_parentid[b])
+    bodies.reverse()
+    pos, quat, joints = [], [], []
+    for b in bodies:
+        pos.append(np.array(m.body_pos[b]))
+        quat.append(np.array(m.body_quat[b]))
+        js = []
+        for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
+            if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+                raise MJCFError(f"end-effector chain: joint {j} is not a hinge")
+            js.append((int(m.jnt_qposadr[j]), np.array(m.jnt_axis[j]), np.array(m.jnt_pos[j])))
+        joints.append(tuple(js))
+    return _Chain(tuple(pos), tuple(quat), tuple(joints), np.array(m.site_pos[sid]))
+
+
+def _resolve_backend(backend: str) -> str:
+    if backend == "auto":
+        return "mjx" if jax.default_backend() == "gpu" else "mujoco"
+    if backend not in ("mjx", "mujoco"):
+        raise ValueError(f"sim.backend={backend!r}: allowed values are ('auto', 'mjx', 'mujoco')")
+    return backend
+
+
+@functools.lru_cache(maxsize=None)
+def make_sim(cfg: SimConfig) -> Sim:
+    """Load and compile the scene of ``cfg`` (cached per config, so cheap at trace time).
+
+    The config's physics timestep (control_dt / substeps) replaces the MJCF's; with
+    ``gravity_compensation=False`` every body's ``gravcomp`` is set to 0; with
+    ``clip_torques=False`` the actuators' control limits are lifted.
+
+    Raises:
+      FileNotFoundError: the MJCF file does not exist (the message names it).
+      MJCFError: the file is malformed or lacks the joints/actuators/site the plant needs.
+    """
+    if not isinstance(cfg.substeps, int) or cfg.substeps < 1:
+        raise ValueError(f"sim.substeps={cfg.substeps!r}: must be a positive integer")
+    if not cfg.control_dt > 0:
+        raise ValueError(f"sim.control_dt={cfg.control_dt!r}: must be a positive number")
+    backend = _resolve_backend(cfg.backend)
+    path = scene_path(cfg.scene)
+    if not path.is_file():
+        available = sorted(p.stem for p in MJCF_DIR.glob("*.xml"))
+        raise FileNotFoundError(f"MJCF scene {cfg.scene!r}: file {path} does not exist "
+                                f"(scenes in {MJCF_DIR}: {available})")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        m0 = spec.compile()
+    except Exception as e:  # MuJoCo raises ValueError without naming the file
+        raise MJCFError(f"MJCF {path} could not be loaded: {e}") from e
+    _validate(m0, path)
+    torque_limit = np.array(m0.actuator_ctrlrange[:, 1], dtype=np.float64)
+
+    spec.option.timestep = cfg.timestep
+    if not cfg.gravity_compensation:
+        for body in spec.bodies:
+            body.gravcomp = 0.0
+    if not cfg.clip_torques:
+        for act in spec.actuators:
+            act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+    model = spec.compile()
+    return Sim(config=cfg, path=path, backend=backend, model=model, dX=2 * model.nq, dU=model.nu,
+               nq=model.nq, torque_limit=torque_limit, chain=_chain(model))
+
+
+# ---------------------------------------------------------------------------------------------
+# Kinematics
+
+
+def _quat_to_mat(qt: np.ndarray) -> np.ndarray:
+    w, x, y, z = qt / np.linalg.norm(qt)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _axis_rotation(axis: np.ndarray, angle: Array) -> Array:
+    """Rotation matrix [3, 3] about a fixed unit axis (Rodrigues), differentiable in angle."""
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    dtype = angle.dtype
+    return (jnp.eye(3, dtype=dtype) + jnp.sin(angle) * jnp.asarray(k, dtype)
+            + (1 - jnp.cos(angle)) * jnp.asarray(k @ k, dtype))
+
+
+def end_effector(s: Sim, q: Array) -> Array:
+    """World position of the ``end_effector`` site, [nq] → [3] (m).
+
+    A plain JAX chain of the compiled model's body frames and hinge rotations (the same numbers
+    MuJoCo uses, so it agrees with ``site_xpos`` to rounding), jittable, vmappable and
+    differentiable (``jax.jacfwd``). Follows the dtype of ``q``.
+    """
+    q = jnp.asarray(q)
+    if not jnp.issubdtype(q.dtype, jnp.floating):
+        q = q.astype(jnp.result_type(float))
+    dtype = q.dtype
+    R = jnp.eye(3, dtype=dtype)
+    p = jnp.zeros(3, dtype=dtype)
+    c = s.chain
+    for pos, quat, joints in zip(c.body_pos, c.body_quat, c.joints):
+        p = p + R @ jnp.asarray(pos, dtype)
+        R = R @ jnp.asarray(_quat_to_mat(quat), dtype)
+        for adr, axis, anchor in joints:
+            Rj = _axis_rotation(axis, q[adr])
+            # rotation about an axis through the anchor point (zero for this arm)
+            p = p + R @ (jnp.asarray(anchor, dtype) - Rj @ jnp.asarray(anchor, dtype))
+            R = R @ Rj
+    return p + R @ jnp.asarray(c.site_pos, dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# One control step
+
+
+def clip_torques(s: Sim, u: Array) -> Array:
+    """Saturate u [..., dU] at ±torque_limit if the config clips (identity otherwise)."""
+    if not s.config.clip_torques:
+        return u
+    lim = jnp.asarray(s.torque_limit, u.dtype)
+    return jnp.clip(u, -lim, lim)
+
+
+def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
+    from mujoco import mjx
+
+    mx, d0 = s.mjx_model_and_data()
+    fdt = d0.qpos.dtype
+    # A fresh Data from the template each control step: the state is exactly (q, q̇), and the
+    # model has warmstart disabled, so nothing else carries over between control steps.
+    d = d0.replace(qpos=x[: s.nq].astype(fdt), qvel=x[s.nq:].astype(fdt), ctrl=u.astype(fdt))
+    d, _ = jax.lax.scan(lambda dd, _: (mjx.step(mx, dd), None), d, None, length=s.config.substeps)
+    return jnp.concatenate([d.qpos, d.qvel]).astype(x.dtype)
+
+
+class _HostStepper:
+    """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``."""
+
+    # Below this many batch members a threaded rollout costs more than it saves.
+    MIN_THREADED_BATCH = 8
+
+    def __init__(self, model: mujoco.MjModel, substeps: int):
+        from mujoco import rollout as mj_rollout
+
+        self.model = model
+        self.substeps = substeps
+        self.nthread = max(1, min(os.cpu_count() or 1, 16))
+        self.serial = mj_rollout.Rollout(nthread=0)
+        self.threaded = mj_rollout.Rollout(nthread=self.nthread) if self.nthread > 1 else None
+        self.datas = [mujoco.MjData(model) for _ in range(self.nthread)]
+        self.nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        d = mujoco.MjData(model)
+        self.template = np.empty(self.nstate)
+        mujoco.mj_getState(model, d, self.template, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        # FULLPHYSICS is laid out in mjtState bit order: time, qpos, qvel, act, ...
+        self.i_qpos = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_TIME)
+        self.i_qvel = self.i_qpos + model.nq
+        self.t_end = substeps * model.opt.timestep
+        self.lock = threading.Lock()
+
+    def __call__(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x [..., dX], u [..., dU] (same leading shape) → x1 [..., dX] in x's dtype."""
+        lead = x.shape[:-1]
+        nq, nu = self.model.nq, self.model.nu
+        xb = np.asarray(x, dtype=np.float64).reshape(-1, 2 * nq)
+        ub = np.broadcast_to(np.asarray(u, dtype=np.float64), lead + (nu,)).reshape(-1, 1, nu)
+        B = xb.shape[0]
+        state0 = np.tile(self.template, (B, 1))
+        state0[:, 0] = 0.0  # time
+        state0[:, self.i_qpos:self.i_qvel] = xb[:, :nq]
+        state0[:, self.i_qvel:self.i_qvel + nq] = xb[:, nq:]
+        out = np.empty((B, self.substeps, self.nstate))
+        runner = self.threaded if (self.threaded is not None and B >= self.MIN_THREADED_BATCH) else self.serial
+        ctrl = np.ascontiguousarray(np.broadcast_to(ub, (B, self.substeps, nu)))
+        with self.lock:
+            runner.rollout(self.model, self.datas if runner is self.threaded else self.datas[0],
+                           state0, ctrl, nstep=self.substeps, state=out,
+                           sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
+        last = out[:, -1]
+        x1 = np.concatenate([last[:, self.i_qpos:self.i_qvel], last[:, self.i_qvel:self.i_qvel + nq]], axis=1)
+        # C MuJoCo silently resets a state whose acceleration or position went bad (time then
+        # restarts at 0): turn such members, and any non-finite input, into NaN so the
+        # divergence is visible, as it is with MJX.
+        bad = (np.abs(last[:, 0] - self.t_end) > 0.5 * self.model.opt.timestep) | ~np.all(np.isfinite(xb), axis=1)
+        x1[bad] = np.nan
+        return x1.reshape(lead + (2 * nq,)).astype(x.dtype, copy=False)
+
+
+def _host_step(s: Sim, x: Array, u: Array) -> Array:
+    stepper = s._host()
+    return jax.pure_callback(stepper, jax.ShapeDtypeStruct(x.shape, x.dtype), x, u.astype(x.dtype),
+                             vmap_method="broadcast_all")
+
+
+def step_unclipped(s: Sim, x: Array, u: Array) -> Array:
+    """One control step without the torque saturation of :func:`step` (x [dX], u [dU] → [dX])."""
+    x = jnp.asarray(x)
+    u = jnp.asarray(u, x.dtype)
+    if s.backend == "mjx":
+        return _mjx_step(s, x, u)
+    return _host_step(s, x, u)
+
+
+def step(s: Sim, x: Array, u: Array) -> Array:
+    """One control step: torques u [dU] (clipped at the limits) held for ``substeps`` physics
+    steps from x [dX] = [q, q̇]; returns x' [dX] in x's dtype."""
+    x = jnp.asarray(x)
+    return step_unclipped(s, x, clip_torques(s, jnp.asarray(u, x.dtype)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Rollouts
+
+
+def linear_gaussian_action(policy: types.LinearGaussianPolicy, t: Array, x: Array, eps_t: Array) -> Array:
+    """u_t = K_t x + k_t + chol_pol_covar_tᵀ ε_t ([dU]; toolbox convention, chol upper)."""
+    return policy.K[t] @ x + policy.k[t] + policy.chol_pol_covar[t].T @ eps_t
+
+
+def rollout_with_final(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: bool = True):
+    """Roll out a controller for T = eps.shape[0] control steps; also return the final state.
+
+    Args:
+      s: the plant (``make_sim(cfg.sim)``).
+      policy: a ``types.LinearGaussianPolicy`` (K [T, dU, dX], k [T, dU], chol_pol_covar
+        [T, dU, dU]; u_t = K_t x_t + k_t + chol_tᵀ ε_t) or a callable ``policy(t, x, eps_t) -> u``
+        (t a traced int scalar, x [dX], eps_t [dU]), e.g. a closure around a Flax ``apply``.
+      x0: [dX] initial state.
+      eps: [T, dU] exploration noise (zeros for a noiseless rollout).
+      with_ee: also compute end-effector positions (otherwise ``ee`` is None).
+
+    Returns:
+      (traj, x_T): ``types.Trajectories`` with X [T, dX] (x_0 … x_{T-1}), U [T, dU] (the
+      torques applied, after clipping), ee [T, 3] (site position at x_t), and x_T [dX], the
+      state after the last action. Batch axes come from ``jax.vmap`` over (policy, x0, eps).
+    """
+    x0 = jnp.asarray(x0)
+    if not jnp.issubdtype(x0.dtype, jnp.floating):
+        x0 = x0.astype(jnp.result_type(float))
+    eps = jnp.asarray(eps)
+    T = eps.shape[0]
+    if isinstance(policy, types.LinearGaussianPolicy):
+        pol_xs = (policy.K, policy.k, policy.chol_pol_covar)
+
+        def act(t, x, e, p):
+            K, k, chol = p
+            return K @ x + k + chol.T @ e
+    elif callable(policy):
+        pol_xs = None
+
+        def act(t, x, e, p):
+            return policy(t, x, e)
+    else:
+        raise TypeError(f"policy must be a LinearGaussianPolicy or a callable, got {type(policy)}")
+
+    def body(x, inp):
+        t, e, p = inp
+        u = clip_torques(s, jnp.asarray(act(t, x, e, p)).astype(x.dtype))
+        return step_unclipped(s, x, u), (x, u)
+
+    xT, (X, U) = jax.lax.scan(body, x0, (jnp.arange(T), eps, pol_xs))
+    ee = jax.vmap(functools.partial(end_effector, s))(X[:, : s.nq]) if with_ee else None
+    return types.Trajectories(X=X, U=U, ee=ee), xT
+
+
+def rollout(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: bool = True) -> types.Trajectories:
+    """:func:`rollout_with_final` without the final state: X [T, dX], U [T, dU], ee [T, 3]."""
+    return rollout_with_final(s, policy, x0, eps, with_ee)[0]
+
+
+def diverged(traj: types.Trajectories, x_final: Array | None = None) -> Array:
+    """True for each rollout (leading batch axes of X) whose states or actions are not finite."""
+    bad = ~jnp.all(jnp.isfinite(traj.X), axis=(-2, -1)) | ~jnp.all(jnp.isfinite(traj.U), axis=(-2, -1))
+    if x_final is not None:
+        bad = bad | ~jnp.all(jnp.isfinite(x_final), axis=-1)
+    return bad
