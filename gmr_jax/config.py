@@ -402,3 +402,86 @@ class MLPConfig:
             raise ValueError(f"mlp.init_var={self.init_var!r}: must be a positive number")
         if not (self.ent_reg >= 0 and math.isfinite(self.ent_reg)):
             raise ValueError(f"mlp.ent_reg={self.ent_reg!r}: must be a number ≥ 0")
+
+
+GMR_HEAD_COORDINATES = ("normalized", "raw")
+GMR_EXPLORATION = ("reflex", "fixed")
+
+
+@dataclass(frozen=True)
+class GMRConfig:
+    """The Generative Motor Reflex policy (gmr-method.md §1 and §3.4–§3.8; see policies/gmr.py).
+
+    The paper's layer sizes are lost (its Figure 3 is blank in the text); the sizes here are the
+    project's decision §3.4.
+
+    Attributes:
+      latent: size of the latent state z.
+      encoder_hidden: hidden widths of h_enc: x̃ [dX] → … → (μ_z, log σ²_z) [2·latent].
+      decoder_hidden: hidden widths of h_dec: z → … → x̂ [dX] (the normalised state).
+      translation_hidden: hidden widths of h_trans: z → … → (Ψ_K [dU·dX], Ψ_k [dU], the
+        dU(dU+1)/2 entries of the Cholesky factor of Ψ_Σ).
+      negative_slope: slope of the leaky ReLU for negative inputs (all hidden layers).
+      alpha: α, the weight of the latent term KL(q(z|x) ‖ N(0, I)). The paper hand-tunes it; 1.0
+        is the plain VAE objective (with the paper's unhalved squared reconstruction error it is
+        the ELBO of a Gaussian decoder of variance ½). To be chosen by a documented sweep.
+      head_coordinates: the state coordinates in which h_trans emits the gain and offset.
+        "normalized" (default): the head emits (G̃, g̃) for u = G̃ x̃ + g̃ with the standardised
+        state x̃ = x·scale + bias, and the reflex in raw coordinates is Ψ_K = G̃·diag(scale),
+        Ψ_k = g̃ + G̃·bias — the same function class, but every gain column is in action units
+        per standard deviation of its state entry and the offset is of the size of an action
+        (the raw offset k_p = u_p − K_p x cancels a large K_p x). "raw": the head emits Ψ_K, Ψ_k
+        directly (the authors' code).
+      exploration: the covariance used for on-policy sampling. "reflex" (default): the generated
+        Ψ_Σ(x) (the paper's motor reflex); "fixed": diag(var), the closed-form variance of the
+        S-step (what the authors' code used).
+      init_var: exploration variance per action entry before the first S-step (``params.var``,
+        toolbox 0.1), and the centre of the Ψ_Σ parameterisation: a zero head output gives
+        Ψ_Σ = init_var·I.
+      cov_std_range: R, the factor by which each standard deviation of Ψ_Σ may leave
+        sqrt(init_var): diag(L) ∈ sqrt(init_var)·[1/R, R] through a tanh-bounded log (a floor
+        and a ceiling, so Ψ_Σ stays positive definite *in floating point* for any input).
+      cov_offdiag_bound: c, the bound of the strictly lower entries of the unit-triangular factor
+        U of L = diag(σ)·U (U_ij = c·tanh(r_ij/c)); the correlations it allows reach ±c/√(1+c²)
+        between two entries.
+      ent_reg: entropy regulariser of the closed-form variance, var = 1/diag(A + 2·ent_reg)
+        (toolbox 0; shared with the MLP).
+    """
+
+    latent: int = 4
+    encoder_hidden: tuple[int, ...] = (64, 64)
+    decoder_hidden: tuple[int, ...] = (64, 64)
+    translation_hidden: tuple[int, ...] = (64, 64)
+    negative_slope: float = 0.2
+    alpha: float = 1.0
+    head_coordinates: str = "normalized"
+    exploration: str = "reflex"
+    init_var: float = 0.1
+    cov_std_range: float = 1e3
+    cov_offdiag_bound: float = 10.0
+    ent_reg: float = 0.0
+
+    def __post_init__(self):
+        if not (isinstance(self.latent, int) and self.latent >= 1):
+            raise ValueError(f"gmr.latent={self.latent!r}: must be a positive integer")
+        for name in ("encoder_hidden", "decoder_hidden", "translation_hidden"):
+            value = getattr(self, name)
+            if not (isinstance(value, tuple) and all(isinstance(h, int) and h >= 1 for h in value)):
+                raise ValueError(f"gmr.{name}={value!r}: must be a tuple of positive integers")
+        if not (0 <= self.negative_slope < 1):
+            raise ValueError(f"gmr.negative_slope={self.negative_slope!r}: must be in [0, 1)")
+        if not (self.alpha >= 0 and math.isfinite(self.alpha)):
+            raise ValueError(f"gmr.alpha={self.alpha!r}: must be a number ≥ 0")
+        if self.head_coordinates not in GMR_HEAD_COORDINATES:
+            raise ValueError(f"gmr.head_coordinates={self.head_coordinates!r}: allowed values are "
+                             f"{GMR_HEAD_COORDINATES}")
+        if self.exploration not in GMR_EXPLORATION:
+            raise ValueError(f"gmr.exploration={self.exploration!r}: allowed values are {GMR_EXPLORATION}")
+        if not (self.init_var > 0 and math.isfinite(self.init_var)):
+            raise ValueError(f"gmr.init_var={self.init_var!r}: must be a positive number")
+        if not (self.cov_std_range > 1 and math.isfinite(self.cov_std_range)):
+            raise ValueError(f"gmr.cov_std_range={self.cov_std_range!r}: must be a number > 1")
+        if not (self.cov_offdiag_bound > 0 and math.isfinite(self.cov_offdiag_bound)):
+            raise ValueError(f"gmr.cov_offdiag_bound={self.cov_offdiag_bound!r}: must be a positive number")
+        if not (self.ent_reg >= 0 and math.isfinite(self.ent_reg)):
+            raise ValueError(f"gmr.ent_reg={self.ent_reg!r}: must be a number ≥ 0")
