@@ -143,8 +143,8 @@ def sweep(args, dtype):
             row.update({"bare_s": t_bare, "bare_compile_s": c_bare,
                         "bare_steps_per_s": B * n_phys / t_bare, "ratio": t_bare / t_roll})
         rows.append(row)
-        print(f"# B={B}: rollout {row['rollout_steps_per_s'] / 1e6:.3f} M steps/s"
-              + (f", bare {row['bare_steps_per_s'] / 1e6:.3f} M steps/s, ratio {row['ratio']:.3f}"
+        print(f"# B={B}: rollout {row['rollout_steps_per_s'] / 1e6:.4g} M steps/s"
+              + (f", bare {row['bare_steps_per_s'] / 1e6:.4g} M steps/s, ratio {row['ratio']:.3f}"
                  if "ratio" in row else ""), file=sys.stderr, flush=True)
     return rows
 
@@ -184,8 +184,8 @@ def markdown(env, rows, cmp):
         lines += ["| batch | rollout M steps/s | bare mjx.step scan M steps/s | ratio | rollout s | rollout compile s | bare compile s |",
                   "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
         for r in rows:
-            bare = (f"{r['bare_steps_per_s'] / 1e6:.3f} | {r['ratio']:.3f}" if "ratio" in r else "– | –")
-            lines.append(f"| {r['batch']} | {r['rollout_steps_per_s'] / 1e6:.3f} | {bare} | {r['rollout_s']:.4f} | "
+            bare = (f"{r['bare_steps_per_s'] / 1e6:.4g} | {r['ratio']:.3f}" if "ratio" in r else "– | –")
+            lines.append(f"| {r['batch']} | {r['rollout_steps_per_s'] / 1e6:.4g} | {bare} | {r['rollout_s']:.4f} | "
                          f"{r['rollout_compile_s']:.1f} | {r.get('bare_compile_s', float('nan')):.1f} |")
         lines.append("")
     if cmp:
