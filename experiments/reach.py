@@ -1,0 +1,164 @@
+"""The reaching study on the simulated Jaco 2: ``python -m experiments.reach``.
+
+Trains the chosen algorithms on the chosen scenarios for several seeds in parallel (``jax.vmap``
+over PRNG keys), one jitted iteration at a time so that progress is shown and the whole training
+state is checkpointed after every iteration (``--resume`` continues an interrupted run and reaches
+the same result as an uninterrupted one). Writes into ``--out``: ``config.json``,
+``results.json``, ``summary.md``, ``learning_curves.png``, ``paths.png`` and ``checkpoints/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import platform
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments import report
+from gmr_jax import checkpoint, config, mdgps
+
+DEFAULT_ALGORITHMS = "lqr"
+DEFAULT_SCENARIOS = "A"
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m experiments.reach", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--algorithm", default=DEFAULT_ALGORITHMS,
+                   help=f"comma-separated list of {config.ALGORITHMS} (default: %(default)s)")
+    p.add_argument("--scenario", default=DEFAULT_SCENARIOS,
+                   help=f"comma-separated list of {tuple(config.SCENARIOS)} (default: %(default)s)")
+    p.add_argument("--iterations", type=int, default=config.Config.iterations,
+                   help="GPS iterations (default: %(default)s)")
+    p.add_argument("--samples", type=int, default=config.Config.num_samples,
+                   help="samples per condition per iteration (default: %(default)s)")
+    p.add_argument("--seeds", type=int, default=1, help="seeds trained in parallel (default: 1)")
+    p.add_argument("--first-seed", type=int, default=0, help="first seed (default: 0)")
+    p.add_argument("--T", type=int, default=config.TaskConfig.T, help="horizon (default: %(default)s)")
+    p.add_argument("--backend", default=config.SimConfig.backend, choices=("auto", "mjx", "mujoco"),
+                   help="physics backend (default: %(default)s)")
+    p.add_argument("--out", default="results/reach", help="output folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the checkpoints in --out (same settings required)")
+    p.add_argument("--precision", default="float32", choices=("float32", "float64"),
+                   help="floating-point precision of the whole run (default: %(default)s)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    args = p.parse_args(argv)
+    args.algorithms = [a.strip() for a in args.algorithm.split(",") if a.strip()]
+    args.scenarios = [s.strip() for s in args.scenario.split(",") if s.strip()]
+    for a in args.algorithms:
+        if a not in config.ALGORITHMS:
+            p.error(f"--algorithm {a!r}: allowed values are {config.ALGORITHMS}")
+    for s in args.scenarios:
+        if s not in config.SCENARIOS:
+            p.error(f"--scenario {s!r}: allowed values are {tuple(config.SCENARIOS)}")
+    for name in ("iterations", "samples", "seeds", "T"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name} must be a positive integer, got {getattr(args, name)}")
+    if args.samples < 2:
+        p.error("--samples must be at least 2 (the dynamics fit needs two samples)")
+    return args
+
+
+def make_config(args, scenario: str, algorithm: str) -> config.Config:
+    return config.reach(scenario, algorithm, iterations=args.iterations, num_samples=args.samples,
+                        task__T=args.T, sim__backend=args.backend)
+
+
+def _host(tree):
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+def _format_progress(it: int, total: int, m: dict) -> str:
+    def mean(name):
+        return float(np.mean(m[name])) if name in m else float("nan")
+    line = (f"  iter {it:2d}/{total}  cost {mean('sample_cost'):10.3f}  KL {mean('kl'):8.3f}"
+            f"  eps {mean('epsilon'):7.2f}  eta {mean('eta'):9.3g}  step {mean('step_mult'):6.3f}"
+            f"  mse(lqr) {mean('final_state_mse_lqr'):.4g}")
+    if "final_state_mse_policy" in m:
+        line += f"  mse(policy) {mean('final_state_mse_policy'):.4g}"
+    return line
+
+
+def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool) -> dict:
+    """Train ``cfg`` for ``seeds`` in parallel; checkpoint after every iteration.
+
+    Returns:
+      dict with the stacked metrics history (leading axes [iteration, seed, ...]) and timing.
+    """
+    run_dir.mkdir(parents=True, exist_ok=True)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    k_init, it_keys = jax.vmap(lambda k: mdgps.iteration_keys(k, cfg.iterations))(keys)
+    init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
+    step_fn = jax.jit(jax.vmap(mdgps.iteration_static, in_axes=(None, 0, 0, None)), static_argnums=(0, 3))
+    ckpt_dir = run_dir / "checkpoints"
+    meta = {"config": config.to_dict(cfg), "seeds": list(seeds)}
+
+    t0 = time.perf_counter()
+    state = init_fn(cfg, k_init)
+    history: list[dict] = []
+    start = 0
+    if resume and checkpoint.latest(ckpt_dir) is not None:
+        state, saved = checkpoint.restore(ckpt_dir, state, expect=report.jsonable(meta))
+        history = [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
+        start = len(history)
+        print(f"  resumed from iteration {start}")
+    compile_s = None
+    for it in range(start, cfg.iterations):
+        t_it = time.perf_counter()
+        state, metrics = step_fn(cfg, state, it_keys[:, it], it == 0)
+        metrics = _host(metrics)
+        if compile_s is None:
+            compile_s = time.perf_counter() - t_it
+        if not np.all(metrics["ok"]):
+            bad = np.argwhere(~np.asarray(metrics["ok"]))
+            raise FloatingPointError(
+                f"iteration {it + 1}: the C-step failed (non-finite controller or η reached max_eta) "
+                f"for (seed index, condition) {bad.tolist()}")
+        history.append(metrics)
+        checkpoint.save(ckpt_dir, state, step=it + 1,
+                        metadata={**meta, "history": [report.jsonable(h) for h in history]})
+        print(_format_progress(it + 1, cfg.iterations, metrics), flush=True)
+    wall = time.perf_counter() - t0
+    stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
+    return {"history": stacked, "wall_s": wall, "first_iteration_s": compile_s}
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    jax.config.update("jax_enable_x64", args.precision == "float64")
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    device = f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}"
+    print(f"gmr-jax reach study -> {out}  (device {device}, seeds {seeds})")
+    configs = {(s, a): make_config(args, s, a) for s in args.scenarios for a in args.algorithms}
+    (out / "config.json").write_text(json.dumps({
+        "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
+        "seeds": seeds, "device": device, "precision": args.precision, "python": platform.python_version(), "jax": jax.__version__,
+        "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in configs.items()}}, indent=2))
+    runs = {}
+    t_all = time.perf_counter()
+    for (scenario, algorithm), cfg in configs.items():
+        print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
+              f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
+        runs[(scenario, algorithm)] = run_one(cfg, seeds, out / f"{scenario}_{algorithm}", args.resume)
+    total = time.perf_counter() - t_all
+    results = report.write_results(out, configs, runs, seeds, device, total)
+    if not args.no_plots:
+        report.plot_learning_curves(out / "learning_curves.png", configs, runs)
+        report.plot_paths(out / "paths.png", configs, runs)
+    report.write_summary(out / "summary.md", configs, runs, seeds, device, total, results)
+    print((out / "summary.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

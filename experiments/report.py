@@ -1,0 +1,162 @@
+"""Results, figures and the summary of the reaching study (host-side, numpy and matplotlib)."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import numpy as np
+
+# Per-iteration learning-curve entries, in the order they are reported.
+CURVES = (("final_state_mse_lqr", "LQR base layer"), ("final_state_mse_policy", "policy"))
+
+
+def jsonable(tree):
+    """Nested numpy/jax values → plain JSON types."""
+    if isinstance(tree, dict):
+        return {k: jsonable(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return [jsonable(v) for v in tree]
+    arr = np.asarray(tree)
+    if arr.dtype == bool:
+        return arr.tolist()
+    if np.issubdtype(arr.dtype, np.integer):
+        return arr.astype(int).tolist()
+    return np.where(np.isfinite(arr), arr, np.nan).astype(float).tolist() if arr.ndim else float(arr)
+
+
+def _label(algorithm: str, curve: str) -> str:
+    if curve == "final_state_mse_lqr":
+        return "LQR base layer" if algorithm == "lqr" else f"LQR base layer ({algorithm})"
+    return algorithm.upper()
+
+
+def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s) -> dict:
+    """Write ``results.json``: per run (scenario, algorithm, seed) the per-iteration metrics.
+
+    Scalars per condition are averaged over conditions (the learning-curve convention), and the
+    per-condition values are kept too.
+    """
+    records = []
+    for (scenario, algorithm), run in runs.items():
+        h = run["history"]
+        for i, seed in enumerate(seeds):
+            rec = {"scenario": scenario, "algorithm": algorithm, "seed": seed}
+            for name in ("final_state_mse_lqr", "final_state_mse_policy", "sample_cost", "kl",
+                         "eta", "step_mult", "epsilon"):
+                if name in h:
+                    per_cond = h[name][:, i]  # [iterations, M]
+                    rec[name] = jsonable(per_cond.mean(axis=-1))
+                    rec[name + "_per_condition"] = jsonable(per_cond)
+            rec["sample_costs"] = jsonable(h["sample_costs"][:, i])  # [iterations, M, N]
+            if "final_state_mse_lqr" in h:
+                rec["final_state_mse"] = rec["final_state_mse_lqr"]
+            if "final_state_mse_policy" in h:
+                rec["final_state_mse"] = rec["final_state_mse_policy"]
+            records.append(rec)
+    results = {"device": device, "seeds": list(seeds), "total_wall_s": total_s,
+               "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], "first_iteration_s": r["first_iteration_s"]}
+                          for (s, a), r in runs.items()},
+               "runs": records}
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    return results
+
+
+def _curves(run):
+    h = run["history"]
+    for curve, _ in CURVES:
+        if curve in h:
+            yield curve, h[curve].mean(axis=-1)  # [iterations, seeds]
+
+
+def plot_learning_curves(path: pathlib.Path, configs, runs) -> None:
+    """Final-state MSE per iteration, mean ± std over seeds, one panel per scenario."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = sorted({s for s, _ in runs}, key=lambda s: (len(s), s))
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(5.5 * len(scenarios), 4), squeeze=False)
+    for ax, scenario in zip(axes[0], scenarios):
+        for (s, algorithm), run in runs.items():
+            if s != scenario:
+                continue
+            threshold = configs[(s, algorithm)].task.success_threshold
+            for curve, values in _curves(run):
+                it = np.arange(1, values.shape[0] + 1)
+                mean, std = values.mean(axis=1), values.std(axis=1)
+                line, = ax.semilogy(it, mean, marker="o", label=_label(algorithm, curve),
+                                    linestyle="--" if curve.endswith("lqr") and algorithm != "lqr" else "-")
+                ax.fill_between(it, np.maximum(mean - std, 1e-6), mean + std, alpha=0.2,
+                                color=line.get_color())
+        ax.axhline(threshold, color="k", lw=0.8, ls=":", label=f"success threshold {threshold}")
+        ax.set_title(f"scenario {scenario}")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("final-state MSE")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_paths(path: pathlib.Path, configs, runs) -> None:
+    """End-effector paths (x–y and x–z projections) of the noiseless controllers, first seed,
+    every iteration (light) and the last (dark)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = list(runs)
+    fig, axes = plt.subplots(len(keys), 2, figsize=(10, 4.2 * len(keys)), squeeze=False)
+    for row, key in enumerate(keys):
+        ee = runs[key]["history"]["eval_ee"][:, 0]  # [iterations, M, T, 3]
+        n_it = ee.shape[0]
+        for col, (a, b, name) in enumerate(((0, 1, "y"), (0, 2, "z"))):
+            ax = axes[row, col]
+            for m in range(ee.shape[1]):
+                for i in range(n_it):
+                    alpha = 0.15 + 0.85 * (i + 1) / n_it
+                    ax.plot(ee[i, m, :, a], ee[i, m, :, b], color=f"C{m}", alpha=alpha,
+                            lw=2.0 if i == n_it - 1 else 0.8,
+                            label=f"condition {m}" if i == n_it - 1 else None)
+                ax.plot(ee[-1, m, 0, a], ee[-1, m, 0, b], "o", color=f"C{m}")
+                ax.plot(ee[-1, m, -1, a], ee[-1, m, -1, b], "x", color="k")
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel(f"{name} (m)")
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.grid(True, alpha=0.3)
+            ax.set_title(f"{key[0]} / {key[1]}: end-effector paths (o start, x end)")
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, results) -> None:
+    """``summary.md``: final-state MSE per iteration (mean over seeds), successes, timing."""
+    lines = ["# Reach study summary", "",
+             f"Device: {device}. Seeds: {seeds}. Total wall time: {total_s:.1f} s.", ""]
+    for (scenario, algorithm), run in runs.items():
+        cfg = configs[(scenario, algorithm)]
+        thr, thr2 = cfg.task.success_threshold, cfg.task.success_threshold_loose
+        lines += [f"## Scenario {scenario}, algorithm {algorithm}", "",
+                  f"{cfg.iterations} iterations, {cfg.num_samples} samples/condition, T = {cfg.task.T}; "
+                  f"wall time {run['wall_s']:.1f} s (first iteration incl. compilation "
+                  f"{run['first_iteration_s']:.1f} s).", ""]
+        curves = dict(_curves(run))
+        header = "| iteration | " + " | ".join(
+            f"{_label(algorithm, c)} MSE mean (min–max)" for c in curves) + " | sample cost |"
+        lines += [header, "|" + "---|" * (len(curves) + 2)]
+        cost = run["history"]["sample_cost"].mean(axis=-1)
+        for i in range(cost.shape[0]):
+            cells = [f"{v[i].mean():.4g} ({v[i].min():.3g}–{v[i].max():.3g})" for v in curves.values()]
+            lines.append(f"| {i + 1} | " + " | ".join(cells) + f" | {cost[i].mean():.2f} |")
+        lines.append("")
+        for curve, v in curves.items():
+            final = v[-1]
+            lines.append(f"- {_label(algorithm, curve)}: final-state MSE < {thr} at the last iteration "
+                         f"for {int((final < thr).sum())}/{len(final)} seeds "
+                         f"(< {thr2}: {int((final < thr2).sum())}/{len(final)}).")
+        lines.append("")
+    path.write_text("\n".join(lines))
