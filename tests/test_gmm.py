@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from gmr_jax.gmm import (gmm_empty, gmm_inference, gmm_loglik, gmm_update, gmm_update_with_info,
-                         niw_prior, num_clusters)
+from gmr_jax.gmm import gmm_empty, gmm_inference, gmm_loglik, gmm_update_with_info, niw_prior, num_clusters
 from gmr_jax.types import GMM
 
 K_MAX, D = 5, 3
@@ -164,19 +163,7 @@ def test_inference_hand_case():
                                np.log(lik.sum(1)).sum(), rtol=1e-12)
 
 
-def test_vmap_over_conditions_equals_separate_calls():
-    datas = np.stack([_pad(_clusters(s), np.ones(360, bool), N_TOTAL, 0.0)[0] for s in (11, 12)])
-    masks = np.stack([np.arange(N_TOTAL) < 360, np.arange(N_TOTAL) < 300])
-    ks = np.array([3, 2])
-    keys = jax.random.split(jax.random.key(4), 2)
-    empty = gmm_empty(K_MAX, D, jnp.float64)
-    g2 = jax.tree.map(lambda a: jnp.stack([a, a]), empty)
-    batched = jax.jit(jax.vmap(lambda g, k, d, m, kk: gmm_update(g, k, d, m, kk, 100)))(
-        g2, keys, jnp.asarray(datas), jnp.asarray(masks), jnp.asarray(ks))
-    for c in range(2):
-        single, _ = _run(empty, keys[c], datas[c], masks[c], ks[c])
-        for a, b in zip(batched, single):
-            np.testing.assert_allclose(np.asarray(a[c]), np.asarray(b), rtol=1e-9, atol=1e-11)
+# vmap over conditions is tested through gmm_update inside test_dynamics.py and test_linearize.py.
 
 
 def test_float32_follows_input_dtype():
