@@ -438,12 +438,14 @@ class GMRConfig:
       init_var: exploration variance per action entry before the first S-step (``params.var``,
         toolbox 0.1), and the centre of the Ψ_Σ parameterisation: a zero head output gives
         Ψ_Σ = init_var·I.
-      cov_std_range: R, the factor by which each standard deviation of Ψ_Σ may leave
-        sqrt(init_var): diag(L) ∈ sqrt(init_var)·[1/R, R] through a tanh-bounded log (a floor
-        and a ceiling, so Ψ_Σ stays positive definite *in floating point* for any input).
-      cov_offdiag_bound: c, the bound of the strictly lower entries of the unit-triangular factor
-        U of L = diag(σ)·U (U_ij = c·tanh(r_ij/c)); the correlations it allows reach ±c/√(1+c²)
-        between two entries.
+      cov_std_range: R, the factor by which each standard deviation σ_i of Ψ_Σ may leave
+        sqrt(init_var): σ_i ∈ sqrt(init_var)·[1/R, R] through a tanh-bounded log (a floor and a
+        ceiling; the default allows variances in [1e-5, 1e3] around init_var 0.1). Bounded
+        entries keep Ψ_Σ positive definite *in floating point* for any input.
+      cov_offdiag_bound: c, the bound of the strictly lower entries of the unit-triangular V
+        whose row-normalised form is the correlation factor (V_ij = c·tanh(r_ij/c)); a single
+        entry allows a correlation of up to c/√(1+c²) (0.95 for c = 3). A larger c allows
+        stronger correlations at the price of a worse worst-case conditioning.
       ent_reg: entropy regulariser of the closed-form variance, var = 1/diag(A + 2·ent_reg)
         (toolbox 0; shared with the MLP).
     """
@@ -457,8 +459,8 @@ class GMRConfig:
     head_coordinates: str = "normalized"
     exploration: str = "reflex"
     init_var: float = 0.1
-    cov_std_range: float = 1e3
-    cov_offdiag_bound: float = 10.0
+    cov_std_range: float = 1e2
+    cov_offdiag_bound: float = 3.0
     ent_reg: float = 0.0
 
     def __post_init__(self):

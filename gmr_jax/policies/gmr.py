@@ -16,13 +16,15 @@ The motor reflex in raw state coordinates, π_Ψ(u | x) = N(Ψ_K x + Ψ_k, Ψ_Σ
   head that emits Ψ_K, Ψ_k directly, but its outputs are of the size of actions (see GMRConfig).
   ``"raw"``: Ψ_K = G, Ψ_k = g.
 - u(x) = Ψ_K(x)·x + Ψ_k(x) with the *raw* state x; the Ψ's depend on x only through z.
-- Ψ_Σ = L Lᵀ with L = diag(σ)·U, U unit lower triangular, U_ij = c·tanh(r_ij/c) (i > j),
-  log σ_i = ½·log(init_var) + s·tanh(r_ii/s), s = log(cov_std_range). L is lower triangular with a
-  positive diagonal, so Ψ_Σ is positive definite by construction, and because σ and U are bounded
-  its condition number is bounded too: far outside the training data (the robustness test's
-  random initial states) the leaky-ReLU outputs grow linearly with the input, and an unbounded
-  factor (softplus diagonal with a floor) would make L Lᵀ numerically singular there.
-  log|Ψ_Σ| = 2·Σ log σ_i exactly.
+- Ψ_Σ = L Lᵀ, L = diag(σ)·R, R the unit lower-triangular V (V_ij = c·tanh(r_ij/c), i > j) with
+  its rows scaled to unit norm, log σ_i = ½·log(init_var) + s·tanh(r_ii/s), s = log(cov_std_range)
+  (``cholesky_factor``). L is lower triangular with a positive diagonal, so Ψ_Σ is positive
+  definite by construction; σ_i is exactly the standard deviation of action entry i. Every entry
+  is bounded, which bounds the condition number: far outside the training data (the robustness
+  test's random initial states) the leaky-ReLU outputs grow linearly with the input, and an
+  unbounded factor (softplus diagonal with a floor, free off-diagonals) makes L Lᵀ numerically
+  singular there. This matters beyond sampling: MDGPS linearises the policy with this
+  covariance, and the C-step factorises it. log|Ψ_Σ| = 2·Σ log L_ii exactly.
 
 Exploration covariance (``covariance``): Ψ_Σ(x) with ``exploration="reflex"`` (the paper's reflex);
 the authors' code sampled with a fixed diagonal variance instead, which ``exploration="fixed"``
@@ -185,18 +187,22 @@ def _split_head(out: Array, dX: int, dU: int):
 def cholesky_factor(r: Array, dU: int, init_var: float, std_range: float, offdiag_bound: float):
     """Bounded Cholesky parameterisation of Ψ_Σ: r [..., dU(dU+1)/2] -> (L [..., dU, dU], log|L Lᵀ| [...]).
 
-    r fills the lower triangle row by row (numpy's ``tril_indices`` order). L = diag(σ)·U with
-    log σ_i = ½·log(init_var) + s·tanh(r_ii/s), s = log(std_range), and U unit lower triangular
-    with U_ij = c·tanh(r_ij/c), c = offdiag_bound. r = 0 gives L Lᵀ = init_var·I.
+    r fills the lower triangle row by row (numpy's ``tril_indices`` order). V is unit lower
+    triangular with V_ij = c·tanh(r_ij/c) (i > j, c = offdiag_bound); R = V with every row scaled
+    to unit norm (R Rᵀ is a correlation matrix); L = diag(σ)·R with
+    log σ_i = ½·log(init_var) + s·tanh(r_ii/s), s = log(std_range). So L is lower triangular with
+    the positive diagonal σ_i/‖V_i‖, the standard deviations of Ψ_Σ = L Lᵀ are exactly σ, each
+    within sqrt(init_var)·[1/std_range, std_range], and r = 0 gives Ψ_Σ = init_var·I.
     """
     rows, cols = np.tril_indices(dU)
     full = jnp.zeros(r.shape[:-1] + (dU, dU), r.dtype).at[..., rows, cols].set(r)
     s = math.log(std_range)
     log_sigma = 0.5 * math.log(init_var) + s * jnp.tanh(jnp.diagonal(full, axis1=-2, axis2=-1) / s)
     strict = jnp.tril(jnp.ones((dU, dU), dtype=bool), -1)
-    U = jnp.where(strict, offdiag_bound * jnp.tanh(full / offdiag_bound), 0.0) + jnp.eye(dU, dtype=r.dtype)
-    L = jnp.exp(log_sigma)[..., :, None] * U
-    return L, 2.0 * jnp.sum(log_sigma, axis=-1)
+    V = jnp.where(strict, offdiag_bound * jnp.tanh(full / offdiag_bound), 0.0) + jnp.eye(dU, dtype=r.dtype)
+    row_norm = jnp.sqrt(jnp.sum(jnp.square(V), axis=-1))  # ≥ 1: the diagonal of V is 1
+    L = (jnp.exp(log_sigma) / row_norm)[..., :, None] * V
+    return L, 2.0 * jnp.sum(log_sigma - jnp.log(row_norm), axis=-1)
 
 
 def _gaussian_logdet(P: Array) -> Array:
