@@ -29,6 +29,7 @@ from gmr_jax.gmm import gmm_empty, gmm_update, niw_prior, num_clusters
 from gmr_jax.types import GMM, Dynamics
 
 Array = jax.Array
+_HI = jax.lax.Precision.HIGHEST  # full float32 products on GPUs (their default is TF32)
 
 
 class DynamicsPrior(NamedTuple):
@@ -142,9 +143,10 @@ def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array
     N = jnp.sum(dwts > 0).astype(dtype)
     dwts = dwts.astype(dtype)
     pts = jnp.where((dwts > 0)[:, None], pts, 0.0)
-    mun = dwts @ pts
+    mm = lambda a, b: jnp.matmul(a, b, precision=_HI)
+    mun = mm(dwts, pts)
     diff = pts - mun
-    empsig = _sym((diff * dwts[:, None]).T @ diff)
+    empsig = _sym(mm((diff * dwts[:, None]).T, diff))
     dmu = mun - mu0
     sigma = (N * empsig + Phi + (N * m / (N + m)) * jnp.outer(dmu, dmu)) / (N + n0)
     sigma = _sym(sigma) + sig_reg
@@ -152,8 +154,8 @@ def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array
     s12 = sigma[:d1, d1:d1 + d2]
     # Σ_aa is symmetric positive definite (prior or ridge): a Cholesky solve, not a general one.
     fd = cho_solve(cho_factor(s11, lower=True), s12).T
-    fc = mun[d1:d1 + d2] - fd @ mun[:d1]
-    dynsig = _sym(sigma[d1:d1 + d2, d1:d1 + d2] - fd @ s11 @ fd.T)
+    fc = mun[d1:d1 + d2] - mm(fd, mun[:d1])
+    dynsig = _sym(sigma[d1:d1 + d2, d1:d1 + d2] - mm(mm(fd, s11), fd.T))
     return fd, fc, dynsig
 
 

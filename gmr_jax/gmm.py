@@ -38,6 +38,9 @@ INIT_JITTER = 2e-6  # added to the initial covariances (toolbox)
 EM_JITTER = 1e-6  # added to every M-step covariance (toolbox "quick and dirty regularisation")
 REBOOT_MASS = 1e-4  # clusters with mass < REBOOT_MASS / K are re-spread over all points
 REL_TOL = 1e-5  # relative log-likelihood change that ends EM
+# Full float32 products on GPUs, whose default for float32 matmuls is TF32 (~1e-3 relative error,
+# enough to make a tight cluster covariance indefinite). No effect on CPU.
+_HI = lax.Precision.HIGHEST
 
 
 class GMMFitInfo(NamedTuple):
@@ -100,9 +103,14 @@ def _log_obs(mu: Array, sigma: Array, logmass: Array, active: Array, data: Array
     """
     D = data.shape[-1]
     L = jnp.linalg.cholesky(sigma)  # [K, D, D] lower
-    diff = jnp.swapaxes(data[None, :, :] - mu[:, None, :], -1, -2)  # [K, D, n]
-    z = solve_triangular(L, diff, lower=True)  # [K, D, n]
-    maha = jnp.sum(z * z, axis=-2)  # [K, n]
+    # L⁻¹ by a triangular solve on the small [K, D, D] identity, then one batched matrix product
+    # over all points: on a GPU this is ~3.5x faster than a triangular solve with n right-hand
+    # sides, and as accurate (with full-precision products).
+    eye = jnp.broadcast_to(jnp.eye(D, dtype=sigma.dtype), sigma.shape)
+    Linv = solve_triangular(L, eye, lower=True)  # [K, D, D]
+    diff = data[None, :, :] - mu[:, None, :]  # [K, n, D]
+    z = jnp.einsum("kne,kde->knd", diff, Linv, precision=_HI)  # rows of L⁻¹ (x − μ)
+    maha = jnp.sum(z * z, axis=-1)  # [K, n]
     half_logdet = jnp.sum(jnp.log(jnp.diagonal(L, axis1=-2, axis2=-1)), axis=-1)  # [K]
     logobs = (-0.5 * D * math.log(2.0 * math.pi) - half_logdet[:, None] - 0.5 * maha
               + logmass[:, None])
@@ -121,9 +129,9 @@ def _responsibilities(logobs: Array, mask: Array, active: Array) -> Array:
 
 def _weighted_moments(w: Array, data: Array):
     """Means μ_i = Σ_n w_ni x_n [K, D] and centred scatters Σ_n w_ni (x_n−μ_i)(x_n−μ_i)ᵀ [K, D, D]."""
-    mu = w.T @ data
+    mu = jnp.matmul(w.T, data, precision=_HI)
     diff = data[None, :, :] - mu[:, None, :]  # [K, n, D]
-    scatter = jnp.swapaxes(diff * w.T[:, :, None], -1, -2) @ diff
+    scatter = jnp.matmul(jnp.swapaxes(diff * w.T[:, :, None], -1, -2), diff, precision=_HI)
     return mu, scatter
 
 
@@ -313,9 +321,9 @@ def gmm_inference(gmm: GMM, pts: Array, mask=None):
     logobs = _log_obs(gmm.mu, gmm.sigma, gmm.logmass, gmm.active, pts)
     r = _responsibilities(logobs, mask, gmm.active)
     wts = r.sum(0) / jnp.maximum(mask.sum(), 1).astype(dtype)  # [K]
-    mu0 = wts @ gmm.mu
+    mu0 = jnp.matmul(wts, gmm.mu, precision=_HI)
     diff = gmm.mu - mu0
-    Phi = jnp.einsum("k,kde->de", wts, gmm.sigma + diff[:, :, None] * diff[:, None, :])
+    Phi = jnp.einsum("k,kde->de", wts, gmm.sigma + diff[:, :, None] * diff[:, None, :], precision=_HI)
     N = gmm.n_points.astype(dtype)
     m = jnp.ones((), dtype)
     n0 = (N - 2.0 - D) / N

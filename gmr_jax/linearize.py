@@ -162,5 +162,5 @@ def linearize_policy_autodiff(action_fn: Callable[[Array], Array], x: Array, pol
     """
     T = x.shape[0]
     u, K = jax.vmap(lambda xt: (action_fn(xt), jax.jacfwd(action_fn)(xt)))(x)
-    k = u - jnp.einsum("tux,tx->tu", K, x)
+    k = u - jnp.einsum("tux,tx->tu", K, x, precision=jax.lax.Precision.HIGHEST)
     return K, k, _sym(_collapse_pol_sig(jnp.asarray(pol_sig, x.dtype), T))
