@@ -301,7 +301,8 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
     def covariance(params: PolicyParams, x):
         """Exploration covariance [..., dU, dU]: Ψ_Σ(x) at z = μ_z ("reflex") or diag(var) ("fixed")."""
         if cfg.exploration == "fixed":
-            return jnp.broadcast_to(jnp.diag(params.var), x.shape[:-1] + params.var.shape * 2)
+            dU = params.var.shape[-1]
+            return jnp.broadcast_to(jnp.diag(params.var), x.shape[:-1] + (dU, dU))
         return reflex(params, x).cov
 
     def loss(params: PolicyParams, batch: SStepData, key):
