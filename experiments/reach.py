@@ -87,8 +87,12 @@ def _format_progress(it: int, total: int, m: dict) -> str:
     return line
 
 
-def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool) -> dict:
+def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool,
+            stop_after: int | None = None) -> dict:
     """Train ``cfg`` for ``seeds`` in parallel; checkpoint after every iteration.
+
+    ``stop_after`` ends the loop after that many iterations (as an interruption would); a later
+    call with ``resume=True`` continues from the checkpoint.
 
     Returns:
       dict with the stacked metrics history (leading axes [iteration, seed, ...]) and timing.
@@ -111,7 +115,7 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
         start = len(history)
         print(f"  resumed from iteration {start}")
     compile_s = None
-    for it in range(start, cfg.iterations):
+    for it in range(start, cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)):
         t_it = time.perf_counter()
         state, metrics = step_fn(cfg, state, it_keys[:, it], it == 0)
         metrics = _host(metrics)

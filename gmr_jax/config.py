@@ -255,6 +255,16 @@ class Config:
     lqr: LQRConfig = field(default_factory=LQRConfig)
     step: StepConfig = field(default_factory=StepConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    # Global policy (MDGPS / GMR only). The classes are defined below; lambdas defer the lookup.
+    policy_prior: "PolicyPriorConfig" = field(default_factory=lambda: PolicyPriorConfig())
+    sstep: "SStepConfig" = field(default_factory=lambda: SStepConfig())
+    mlp: "MLPConfig" = field(default_factory=lambda: MLPConfig())
+    gmr: "GMRConfig" = field(default_factory=lambda: GMRConfig())
+    sample_on_policy: bool = False  # sample the global policy instead of the local controllers (itr > 0)
+    # How the C-step's KL anchor π̄ is obtained from the global policy: "gmm" (the toolbox's
+    # GMM-prior fit around the samples, default) or "autodiff" (exact first-order expansion of the
+    # policy mean around the per-step sample mean states; gmr-method.md §3.8).
+    policy_linearization: str = "gmm"
 
     def __post_init__(self):
         validate(self)
@@ -279,6 +289,9 @@ def validate(cfg: Config) -> None:
     if cfg.cost.state_ramp not in ("constant", "linear", "quadratic", "final_only"):
         raise ValueError(f"cost.state_ramp={cfg.cost.state_ramp!r}: allowed values are "
                          "('constant', 'linear', 'quadratic', 'final_only')")
+    if cfg.policy_linearization not in ("gmm", "autodiff"):
+        raise ValueError(f"policy_linearization={cfg.policy_linearization!r}: allowed values are "
+                         "('gmm', 'autodiff')")
     if cfg.step.step_rule not in ("laplace", "mc"):
         raise ValueError(f"step.step_rule={cfg.step.step_rule!r}: allowed values are ('laplace', 'mc')")
 

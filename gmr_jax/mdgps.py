@@ -191,6 +191,11 @@ def linearize_global_policy(cfg: Config, params, pol_prior, X: jax.Array, key: j
     pol_mu = jax.vmap(jax.vmap(jax.vmap(mean)))(X)
     pol_sig = jax.vmap(jax.vmap(jax.vmap(lambda x: pol.covariance(params, x))))(X)
     keys = jax.random.split(key, M)
+    if cfg.policy_linearization == "autodiff":
+        # Exact expansion around the per-step sample mean states; the prior is not needed.
+        pol_K, pol_k, pol_S = jax.vmap(lambda x, sg: linearize.linearize_policy_autodiff(
+            mean, jnp.mean(x, axis=0), jnp.mean(sg, axis=0)))(X, pol_sig)
+        return jax.vmap(lqr.policy_from_covariance)(pol_K, pol_k, pol_S), pol_prior
     pol_prior = jax.vmap(lambda p, k, x: linearize.update_policy_prior(p, k, x, mean, cfg.policy_prior))(
         pol_prior, keys, X)
     pol_K, pol_k, pol_S = jax.vmap(lambda p, x, mu, sg: linearize.linearize_policy(p, x, mu, sg, cfg.policy_prior))(

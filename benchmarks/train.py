@@ -1,0 +1,91 @@
+"""Wall time of whole training runs, many seeds in parallel: ``jax.vmap(gmr_jax.train)``.
+
+For each seed count S, one jitted ``jax.vmap(mdgps.train, in_axes=(None, 0))`` over S keys runs
+the full configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples,
+T = 80, 10 iterations). Compile time (lower + compile) and run time (median over repeats, after
+compilation) are reported separately, with the final-state MSE reached, so that speed is never
+quoted for a run that did not learn. Example::
+
+    python -m benchmarks.train --algorithm mdgps --seeds 1,8,64,256 --out train.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gmr_jax import config, mdgps
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(prog="python -m benchmarks.train", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--algorithm", default="mdgps", choices=config.ALGORITHMS)
+    p.add_argument("--scenario", default="AB", choices=tuple(config.SCENARIOS))
+    p.add_argument("--seeds", default="1,8,64,256", help="comma-separated seed counts")
+    p.add_argument("--iterations", type=int, default=config.Config.iterations)
+    p.add_argument("--samples", type=int, default=config.Config.num_samples)
+    p.add_argument("--T", type=int, default=config.TaskConfig.T)
+    p.add_argument("--backend", default="auto", choices=("auto", "mjx", "mujoco"))
+    p.add_argument("--repeats", type=int, default=1, help="timed runs per seed count (median)")
+    p.add_argument("--out", help="write the results as JSON to this file")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    cfg = config.reach(args.scenario, args.algorithm, iterations=args.iterations,
+                       num_samples=args.samples, task__T=args.T, sim__backend=args.backend)
+    dev = jax.devices()[0]
+    env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,
+           "backend": dev.platform, "jax": jax.__version__, "python": platform.python_version(),
+           "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
+    print(f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, {env['date']}")
+    print(f"{args.algorithm} on {args.scenario}: {cfg.iterations} iterations, {cfg.num_samples} samples, "
+          f"T = {cfg.task.T}, {cfg.task.num_conditions} condition(s)", flush=True)
+    fn = jax.jit(jax.vmap(mdgps.train, in_axes=(None, 0)), static_argnums=0)
+    rows = []
+    for n in [int(s) for s in args.seeds.split(",") if s]:
+        keys = jnp.stack([jax.random.PRNGKey(s) for s in range(n)])
+        t0 = time.perf_counter()
+        compiled = fn.lower(cfg, keys).compile()
+        compile_s = time.perf_counter() - t0
+        times = []
+        for _ in range(max(1, args.repeats)):
+            t0 = time.perf_counter()
+            final, hist = compiled(keys)
+            jax.block_until_ready(hist)
+            times.append(time.perf_counter() - t0)
+        curve = "final_state_mse_policy" if "final_state_mse_policy" in hist else "final_state_mse_lqr"
+        mse = np.asarray(hist[curve])[:, -1].max(axis=-1)  # [seeds], worst condition, last iteration
+        ok = bool(np.all(np.asarray(hist["ok"])))
+        row = {"seeds": n, "compile_s": compile_s, "run_s": statistics.median(times),
+               "curve": curve, "final_mse_median": float(np.median(mse)),
+               "success_0.01": int((mse < cfg.task.success_threshold).sum()), "all_ok": ok}
+        rows.append(row)
+        print(f"# seeds={n}: run {row['run_s']:.2f} s, compile {compile_s:.1f} s, "
+              f"{curve} median {row['final_mse_median']:.3g}, success {row['success_0.01']}/{n}, ok {ok}",
+              flush=True)
+    base = rows[0]["run_s"]
+    print("\n| seeds | run s | × one-seed time | compile s | final MSE (median) | success < 0.01 |")
+    print("| ---: | ---: | ---: | ---: | ---: | ---: |")
+    for r in rows:
+        print(f"| {r['seeds']} | {r['run_s']:.2f} | {r['run_s'] / base:.2f} | {r['compile_s']:.1f} | "
+              f"{r['final_mse_median']:.3g} | {r['success_0.01']}/{r['seeds']} |")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"environment": env, "args": vars(args), "config": config.to_dict(cfg),
+                       "rows": rows}, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
