@@ -17,6 +17,8 @@ def jsonable(tree):
         return {k: jsonable(v) for k, v in tree.items()}
     if isinstance(tree, (list, tuple)):
         return [jsonable(v) for v in tree]
+    if tree is None or isinstance(tree, (str, bool, int)):
+        return tree
     arr = np.asarray(tree)
     if arr.dtype == bool:
         return arr.tolist()

@@ -99,7 +99,8 @@ def init(cfg: Config, key: jax.Array) -> TrainState:
     x0 = tasks.initial_states(cfg.task)
     M = x0.shape[0]
     dtype = x0.dtype
-    traj = jax.vmap(lambda x: lqr.init_lqr(x, T, dU, cfg.sim.control_dt, cfg.init))(x0)
+    with jax.default_matmul_precision("highest"):
+        traj = jax.vmap(lambda x: lqr.init_lqr(x, T, dU, cfg.sim.control_dt, cfg.init))(x0)
     prior = _broadcast_conditions(dyn_lib.dynamics_prior_empty(T, dX, dU, cfg.dynamics, dtype), M)
     dyn0 = Dynamics(
         Fm=jnp.zeros((M, T, dX, dX + dU), dtype), fv=jnp.zeros((M, T, dX), dtype),
@@ -241,7 +242,16 @@ def _run_sstep(cfg: Config, params, data: policies.SStepData, key):
 
 def _iteration(cfg: Config, state: TrainState, key: jax.Array, first: bool | None):
     """One iteration; ``first`` static True/False for the first/later iterations, or None to
-    decide from ``state.iteration`` at run time (``lax.cond``)."""
+    decide from ``state.iteration`` at run time (``lax.cond``).
+
+    All matrix products run at full float32 precision: the GPU's default (TF32 inputs, ~1e-3
+    relative error) breaks the Cholesky factorisations of the dynamics fit and the LQR.
+    """
+    with jax.default_matmul_precision("highest"):
+        return _iteration_body(cfg, state, key, first)
+
+
+def _iteration_body(cfg: Config, state: TrainState, key: jax.Array, first: bool | None):
     T = cfg.task.T
     x0 = tasks.initial_states(cfg.task, state.eta.dtype)
     M = x0.shape[0]
