@@ -89,8 +89,10 @@ def plot_learning_curves(path: pathlib.Path, configs, runs) -> None:
                 mean, std = values.mean(axis=1), values.std(axis=1)
                 line, = ax.semilogy(it, mean, marker="o", label=_label(algorithm, curve),
                                     linestyle="--" if curve.endswith("lqr") and algorithm != "lqr" else "-")
-                ax.fill_between(it, np.maximum(mean - std, 1e-6), mean + std, alpha=0.2,
-                                color=line.get_color())
+                # mean ± std over seeds; on the log axis the lower edge is floored at the best
+                # seed so that a band reaching below zero does not stretch the axis.
+                ax.fill_between(it, np.maximum(mean - std, values.min(axis=1)), mean + std,
+                                alpha=0.2, color=line.get_color())
         ax.axhline(threshold, color="k", lw=0.8, ls=":", label=f"success threshold {threshold}")
         ax.set_title(f"scenario {scenario}")
         ax.set_xlabel("iteration")
