@@ -36,16 +36,20 @@ def parse_args(argv=None):
     p.add_argument("--T", type=int, default=config.TaskConfig.T)
     p.add_argument("--backend", default="auto", choices=("auto", "mjx", "mujoco"))
     p.add_argument("--repeats", type=int, default=1, help="timed runs per seed count (median)")
+    p.add_argument("--precision", default="float64", choices=("float32", "float64"),
+                   help="floating-point precision (default: %(default)s, as experiments.reach)")
     p.add_argument("--out", help="write the results as JSON to this file")
     return p.parse_args(argv)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    jax.config.update("jax_enable_x64", args.precision == "float64")
     cfg = config.reach(args.scenario, args.algorithm, iterations=args.iterations,
                        num_samples=args.samples, task__T=args.T, sim__backend=args.backend)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,
+           "precision": args.precision,
            "backend": dev.platform, "jax": jax.__version__, "python": platform.python_version(),
            "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
     print(f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, {env['date']}")

@@ -47,8 +47,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", default="results/reach", help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="continue from the checkpoints in --out (same settings required)")
-    p.add_argument("--precision", default="float32", choices=("float32", "float64"),
-                   help="floating-point precision of the whole run (default: %(default)s)")
+    p.add_argument("--precision", default="float64", choices=("float32", "float64"),
+                   help="floating-point precision of the whole run (default: %(default)s; float32 "
+                        "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     args = p.parse_args(argv)
     args.algorithms = [a.strip() for a in args.algorithm.split(",") if a.strip()]
