@@ -50,8 +50,9 @@ def test_lqr_base_layer_lowers_the_cost():
     np.testing.assert_array_less(np.abs(kl - eps), 0.1 * eps + 1e-9)
 
 
-def test_mdgps_iteration_jit_equals_eager():
-    cfg = small("mdgps")
+@pytest.mark.parametrize("algorithm", ["mdgps", "gmr"])
+def test_policy_iteration_jit_equals_eager(algorithm):
+    cfg = small(algorithm)
     state = mdgps.init(cfg, jax.random.PRNGKey(1))
     key = jax.random.PRNGKey(2)
     jitted = jax.jit(mdgps.iteration_static, static_argnums=(0, 3))(cfg, state, key, True)

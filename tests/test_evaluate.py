@@ -1,0 +1,62 @@
+"""Robustness evaluation: fixed states, MSE/success/distance against direct computations."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gmr_jax import config, evaluate, mdgps, sim, tasks
+
+
+CFG = config.reach("AB", "mdgps", task__T=6, sim__backend="mujoco")
+
+
+def test_robustness_states_are_fixed_and_in_range():
+    a = np.asarray(evaluate.robustness_states(CFG))
+    b = np.asarray(evaluate.robustness_states(CFG))
+    np.testing.assert_array_equal(a, b)
+    assert a.shape == (50, 12)
+    q, v = a[:, :6], a[:, 6:]
+    assert np.all(v == 0)
+    assert np.all(np.abs(q[:, [0, 3, 4, 5]]) <= math.pi)
+    assert np.all((q[:, 1:3] >= math.pi / 2) & (q[:, 1:3] <= 3 * math.pi / 2))
+    # Spread over the range, not a constant.
+    assert np.all(q.std(axis=0) > 0.3)
+
+
+def test_robustness_matches_single_rollouts():
+    params = mdgps.make_global_policy(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    x0 = evaluate.robustness_states(CFG, num=4)
+    rob = jax.jit(evaluate.robustness, static_argnums=0)(CFG, params, x0)
+    s = sim.make_sim(CFG.sim)
+    target = np.asarray(tasks.target_state(CFG.task))
+    train = np.asarray(tasks.initial_states(CFG.task))
+    fn = mdgps.policy_mean_fn(CFG, params)
+    for i in range(4):
+        traj = sim.rollout(s, fn, x0[i], jnp.zeros((CFG.task.T, 6)))
+        final = np.asarray(traj.X[-1])
+        np.testing.assert_allclose(np.asarray(rob.final_x[i]), final, rtol=1e-9, atol=1e-12)
+        mse = np.mean((final - target) ** 2)
+        np.testing.assert_allclose(float(rob.mse[i]), mse, rtol=1e-9)
+        assert bool(rob.success[i]) == (mse < CFG.task.success_threshold)
+        dist = np.min(np.linalg.norm(np.asarray(x0[i]) - train, axis=1))
+        np.testing.assert_allclose(float(rob.distance[i]), dist, rtol=1e-9)
+
+
+def test_non_finite_final_state_is_a_failure():
+    params = mdgps.make_global_policy(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    x0 = jnp.full((1, 12), jnp.nan)
+    rob = evaluate.robustness(CFG, params, x0)
+    assert not bool(rob.success[0]) and not bool(rob.success_loose[0])
+
+
+def test_disturbance_sweep_radius_zero_starts_at_training_states():
+    params = mdgps.make_global_policy(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    rate, rate_loose, mse = evaluate.disturbance_sweep(CFG, params, [0.0, 0.3], per_radius=2)
+    assert rate.shape == (2,) and mse.shape == (2, 4)
+    x0 = tasks.initial_states(CFG.task)
+    direct = evaluate.robustness(CFG, params, jnp.repeat(x0, 2, axis=0))
+    np.testing.assert_allclose(np.asarray(mse[0]), np.asarray(direct.mse), rtol=1e-9)
+    assert np.all((np.asarray(rate) >= 0) & (np.asarray(rate) <= 1))
+    assert np.all(np.asarray(rate_loose) >= np.asarray(rate))
