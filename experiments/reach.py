@@ -22,10 +22,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import report
-from gmr_jax import checkpoint, config, mdgps
+from gmr_jax import checkpoint, config, evaluate, mdgps
 
-DEFAULT_ALGORITHMS = "lqr"
-DEFAULT_SCENARIOS = "A"
+DEFAULT_ALGORITHMS = "gmr,mdgps"
+DEFAULT_SCENARIOS = "A,AB"
+SWEEP_RADII = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0)  # rad, disturbance of the training joint angles
+SWEEP_PER_RADIUS = 10
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -133,7 +135,20 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
         print(_format_progress(it + 1, cfg.iterations, metrics), flush=True)
     wall = time.perf_counter() - t0
     stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
-    return {"history": stacked, "wall_s": wall, "first_iteration_s": compile_s}
+    result = {"history": stacked, "wall_s": wall, "first_iteration_s": compile_s}
+    if mdgps.uses_policy(cfg) and len(history) == cfg.iterations:
+        result.update(evaluate_robustness(cfg, state.policy))
+    return result
+
+
+def evaluate_robustness(cfg: config.Config, params) -> dict:
+    """Robustness of every seed's policy (leading seed axis of ``params``): the fixed random
+    states and the disturbance sweep."""
+    rob = jax.jit(jax.vmap(lambda p: evaluate.robustness(cfg, p)))(params)
+    rate, rate_loose, _ = jax.jit(jax.vmap(
+        lambda p: evaluate.disturbance_sweep(cfg, p, SWEEP_RADII, SWEEP_PER_RADIUS)))(params)
+    return {"robustness": _host(rob._asdict()), "sweep": {"radii": list(SWEEP_RADII),
+            "success_rate": np.asarray(rate), "success_rate_loose": np.asarray(rate_loose)}}
 
 
 def main(argv=None) -> int:
@@ -160,6 +175,7 @@ def main(argv=None) -> int:
     if not args.no_plots:
         report.plot_learning_curves(out / "learning_curves.png", configs, runs)
         report.plot_paths(out / "paths.png", configs, runs)
+        report.plot_robustness(out / "robustness.png", configs, runs)
     report.write_summary(out / "summary.md", configs, runs, seeds, device, total, results)
     print((out / "summary.md").read_text())
     return 0

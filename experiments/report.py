@@ -55,6 +55,18 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s) -> d
                 rec["final_state_mse"] = rec["final_state_mse_lqr"]
             if "final_state_mse_policy" in h:
                 rec["final_state_mse"] = rec["final_state_mse_policy"]
+            if "robustness" in run:
+                rob = run["robustness"]
+                rec["robustness"] = {
+                    "successes": int(rob["success"][i].sum()),
+                    "successes_loose": int(rob["success_loose"][i].sum()),
+                    "states": int(rob["success"][i].size),
+                    "mse": jsonable(rob["mse"][i]),
+                    "distance": jsonable(rob["distance"][i])}
+                rec["disturbance_sweep"] = {
+                    "radii": run["sweep"]["radii"],
+                    "success_rate": jsonable(run["sweep"]["success_rate"][i]),
+                    "success_rate_loose": jsonable(run["sweep"]["success_rate_loose"][i])}
             records.append(rec)
     results = {"device": device, "seeds": list(seeds), "total_wall_s": total_s,
                "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], "first_iteration_s": r["first_iteration_s"]}
@@ -138,9 +150,11 @@ def plot_paths(path: pathlib.Path, configs, runs) -> None:
 
 
 def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, results) -> None:
-    """``summary.md``: final-state MSE per iteration (mean over seeds), successes, timing."""
+    """``summary.md``: robustness table against the paper, final-state MSE per iteration (mean
+    over seeds), successes, timing."""
     lines = ["# Reach study summary", "",
              f"Device: {device}. Seeds: {seeds}. Total wall time: {total_s:.1f} s.", ""]
+    lines += robustness_table(runs)
     for (scenario, algorithm), run in runs.items():
         cfg = configs[(scenario, algorithm)]
         thr, thr2 = cfg.task.success_threshold, cfg.task.success_threshold_loose
@@ -164,3 +178,77 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
                          f"(< {thr2}: {int((final < thr2).sum())}/{len(final)}).")
         lines.append("")
     path.write_text("\n".join(lines))
+
+
+# The paper's robustness table (successes out of 50 random initial states after 10 iterations).
+PAPER_ROBUSTNESS = {("A", "mdgps"): 12, ("A", "gmr"): 50, ("AB", "mdgps"): 50, ("AB", "gmr"): 50}
+
+
+def robustness_table(runs) -> list[str]:
+    """Markdown rows: our successes (mean and range over seeds) next to the paper's."""
+    scenarios = sorted({s for s, a in runs if "robustness" in runs[(s, a)]}, key=lambda s: (len(s), s))
+    if not scenarios:
+        return []
+    algs = [a for a in ("mdgps", "gmr") if any((s, a) in runs for s in scenarios)]
+    head = "| trained on | " + " | ".join(f"{a.upper()} ours (mean, range) | {a.upper()} paper" for a in algs) + " |"
+    lines = ["## Robustness: 50 random initial states, success = final-state MSE < 0.01", "",
+             head, "|---|" + "---|---|" * len(algs)]
+    for scen in scenarios:
+        cells = []
+        for a in algs:
+            run = runs.get((scen, a))
+            if run is None or "robustness" not in run:
+                cells += ["–", "–"]
+                continue
+            succ = run["robustness"]["success"].sum(axis=-1)
+            n = run["robustness"]["success"].shape[-1]
+            cells += [f"{succ.mean():.1f}/{n} ({succ.min()}–{succ.max()})", f"{PAPER_ROBUSTNESS[(scen, a)]}/50"]
+        lines.append(f"| {', '.join(scen)} | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append("Loose threshold 0.1 (the paper's text): " + "; ".join(
+        f"{s}/{a}: {runs[(s, a)]['robustness']['success_loose'].sum(axis=-1).mean():.1f}"
+        for s in scenarios for a in algs if (s, a) in runs and "robustness" in runs[(s, a)]) + ".")
+    lines.append("")
+    return lines
+
+
+def plot_robustness(path: pathlib.Path, configs, runs) -> None:
+    """End-effector paths of the policy from the 50 random states (first seed; green success,
+    red failure, black the training conditions) and the disturbance sweep (mean over seeds)."""
+    keys = [k for k in runs if "robustness" in runs[k]]
+    if not keys:
+        return
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(keys) + 1, figsize=(4.6 * (len(keys) + 1), 4.4), squeeze=False)
+    for ax, key in zip(axes[0], keys):
+        rob = runs[key]["robustness"]
+        ee, ok = rob["ee"][0], rob["success"][0]
+        for p, good in zip(ee, ok):
+            ax.plot(p[:, 0], p[:, 1], color="tab:green" if good else "tab:red", lw=0.7, alpha=0.7)
+            ax.plot(p[0, 0], p[0, 1], ".", color="grey", ms=3)
+        train = runs[key]["history"]["policy_eval_ee"][-1, 0]  # [M, T, 3]
+        for p in train:
+            ax.plot(p[:, 0], p[:, 1], color="k", lw=2)
+        ax.set_title(f"{key[0]} / {key[1].upper()}: {int(ok.sum())}/{ok.size} succeed (seed 0)")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+    ax = axes[0, -1]
+    for key in keys:
+        sw = runs[key]["sweep"]
+        rate = np.asarray(sw["success_rate"])  # [seeds, R]
+        ax.errorbar(sw["radii"], rate.mean(axis=0), yerr=rate.std(axis=0), marker="o", capsize=3,
+                    label=f"{key[0]} / {key[1].upper()}")
+    ax.set_xlabel("disturbance of the training joint angles (rad)")
+    ax.set_ylabel("success rate (MSE < 0.01)")
+    ax.set_ylim(-0.05, 1.05)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("disturbance sweep (mean ± std over seeds)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
