@@ -75,6 +75,12 @@ def _is_static_zero(value) -> bool:
     return isinstance(value, (int, float, np.floating, np.integer)) and float(value) == 0.0
 
 
+def _l2_part(d: Array, wp: Array, l2):
+    """The ½ l2 Σ wp_i d_i² part shared by both norms: (wp in d's dtype, (l, d1, d2))."""
+    wp = jnp.asarray(wp, d.dtype)
+    return wp, (0.5 * l2 * jnp.sum(wp * d * d), l2 * wp * d, l2 * jnp.diag(wp))
+
+
 def l1l2_term(d: Array, wp: Array, l1, l2, alpha) -> tuple[Array, Array, Array]:
     """The toolbox ``evall1l2term`` for one time step (exact value, gradient and Hessian in d).
 
@@ -91,11 +97,7 @@ def l1l2_term(d: Array, wp: Array, l1, l2, alpha) -> tuple[Array, Array, Array]:
     Returns:
       (l [], d1 [D], d2 [D, D]).
     """
-    dtype = d.dtype
-    wp = jnp.asarray(wp, dtype)
-    l = 0.5 * l2 * jnp.sum(wp * d * d)
-    d1 = l2 * wp * d
-    d2 = l2 * jnp.diag(wp)
+    wp, (l, d1, d2) = _l2_part(d, wp, l2)
     if not _is_static_zero(l1):
         # Skipped when l1 is a literal 0 so that α = 0 cannot produce 0/0 at d = 0.
         w2d = wp * wp * d
@@ -119,11 +121,7 @@ def logl2_term(d: Array, wp: Array, l1, l2, alpha) -> tuple[Array, Array, Array]
 
     Args / Returns: as :func:`l1l2_term`.
     """
-    dtype = d.dtype
-    wp = jnp.asarray(wp, dtype)
-    l = 0.5 * l2 * jnp.sum(wp * d * d)
-    d1 = l2 * wp * d
-    d2 = l2 * jnp.diag(wp)
+    wp, (l, d1, d2) = _l2_part(d, wp, l2)
     if not _is_static_zero(l1):
         w2d = wp * wp * d
         denom = alpha + jnp.sum((wp * d) ** 2)
