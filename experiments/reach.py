@@ -90,6 +90,12 @@ def _format_progress(it: int, total: int, m: dict) -> str:
     return line
 
 
+# One jitted function each for the whole process, so that repeated and resumed runs of the same
+# configuration reuse the compiled executables instead of compiling them again.
+init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
+step_fn = jax.jit(jax.vmap(mdgps.iteration_static, in_axes=(None, 0, 0, None)), static_argnums=(0, 3))
+
+
 def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool,
             stop_after: int | None = None) -> dict:
     """Train ``cfg`` for ``seeds`` in parallel; checkpoint after every iteration.
@@ -103,8 +109,6 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
     run_dir.mkdir(parents=True, exist_ok=True)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     k_init, it_keys = jax.vmap(lambda k: mdgps.iteration_keys(k, cfg.iterations))(keys)
-    init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
-    step_fn = jax.jit(jax.vmap(mdgps.iteration_static, in_axes=(None, 0, 0, None)), static_argnums=(0, 3))
     ckpt_dir = run_dir / "checkpoints"
     meta = {"config": config.to_dict(cfg), "seeds": list(seeds)}
 

@@ -1,11 +1,7 @@
-"""Test set-up: float64 numerics and a persistent compilation cache (MJX compiles slowly on CPU)."""
-
-import os
-import pathlib
+"""Test set-up: float64 numerics for every test."""
 
 import jax
 
+# The persistent compilation cache stays off: executables that contain host callbacks (the
+# C MuJoCo backend) are not safe to share through it, and every CI run starts from a clean clone.
 jax.config.update("jax_enable_x64", True)
-_cache = pathlib.Path(os.environ.get("GMR_JAX_TEST_CACHE", pathlib.Path(__file__).parent.parent / ".jax_cache"))
-jax.config.update("jax_compilation_cache_dir", str(_cache))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
