@@ -12,7 +12,7 @@ Two interchangeable backends run the same MJCF behind the same functions:
   Differentiable (``jax.jacfwd`` through :func:`step` works).
 * ``"mujoco"``: C MuJoCo on the host, called once per control step through
   ``jax.pure_callback`` with ``vmap_method="broadcast_all"``, so one callback receives the
-  whole (possibly nested) batch and steps it with ``mujoco.rollout`` (threaded). It stays
+  whole (possibly nested) batch and steps it with ``mujoco.rollout`` (serially). It stays
   jittable and vmappable, and about 100× faster than MJX on a 2-core CPU (10 rollouts of 80
   steps, ``benchmarks/rollout.py``). Not differentiable (no JVP rule for the callback).
 
@@ -310,19 +310,17 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
 class _HostStepper:
     """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``."""
 
-    # Below this many batch members a threaded rollout costs more than it saves (measured on 2
-    # cores: equal at 10, threads 1.2x faster at 100 and 2x at 1000).
-    MIN_THREADED_BATCH = 32
+    # Stepping is single-threaded inside the callback. A threaded ``mujoco.rollout`` (2x faster at
+    # batch 1000 on 2 cores) was used from batch 32 on, but runs that mixed it with XLA:CPU's own
+    # threads hung with every thread idle; until that is understood the serial path is the only one.
 
     def __init__(self, model: mujoco.MjModel, substeps: int):
         from mujoco import rollout as mj_rollout
 
         self.model = model
         self.substeps = substeps
-        self.nthread = max(1, min(os.cpu_count() or 1, 16))
         self.serial = mj_rollout.Rollout(nthread=0)
-        self.threaded = mj_rollout.Rollout(nthread=self.nthread) if self.nthread > 1 else None
-        self.datas = [mujoco.MjData(model) for _ in range(self.nthread)]
+        self.data = mujoco.MjData(model)
         self.nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         d = mujoco.MjData(model)
         self.template = np.empty(self.nstate)
@@ -345,12 +343,10 @@ class _HostStepper:
         state0[:, self.i_qpos:self.i_qvel] = xb[:, :nq]
         state0[:, self.i_qvel:self.i_qvel + nq] = xb[:, nq:]
         out = np.empty((B, self.substeps, self.nstate))
-        runner = self.threaded if (self.threaded is not None and B >= self.MIN_THREADED_BATCH) else self.serial
         ctrl = np.ascontiguousarray(np.broadcast_to(ub, (B, self.substeps, nu)))
         with self.lock:
-            runner.rollout(self.model, self.datas if runner is self.threaded else self.datas[0],
-                           state0, ctrl, nstep=self.substeps, state=out,
-                           sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
+            self.serial.rollout(self.model, self.data, state0, ctrl, nstep=self.substeps, state=out,
+                                sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
         last = out[:, -1]
         x1 = np.concatenate([last[:, self.i_qpos:self.i_qvel], last[:, self.i_qvel:self.i_qvel + nq]], axis=1)
         # C MuJoCo silently resets a state whose acceleration or position went bad (time then
