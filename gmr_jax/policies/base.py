@@ -40,6 +40,8 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmr_jax import linalg
+
 
 Array = jax.Array
 PyTree = Any
@@ -176,5 +178,5 @@ def noisy_action(policy: Policy, params: PolicyParams, x: Array, noise: Array) -
     Used to roll out the global policy with the toolbox's (smoothed) exploration noise.
     """
     cov = policy.covariance(params, x)
-    chol = jnp.linalg.cholesky(0.5 * (cov + cov.T))
+    chol = linalg.cholesky(cov)
     return policy.mean(params, x) + chol @ noise

@@ -63,6 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gmr_jax import linalg
 from gmr_jax.config import GMRConfig
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, default_float,
                                    identity_normalization, normalize_input)
@@ -207,7 +208,7 @@ def cholesky_factor(r: Array, dU: int, init_var: float, std_range: float, offdia
 
 def _gaussian_logdet(P: Array) -> Array:
     """log|P| of symmetric PD matrices [..., n, n] -> [...] (Cholesky; NaN if P is not PD)."""
-    chol = jnp.linalg.cholesky(0.5 * (P + jnp.swapaxes(P, -1, -2)))
+    chol = linalg.cholesky(P)
     return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
 
 
