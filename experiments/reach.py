@@ -10,6 +10,7 @@ the same result as an uninterrupted one). Writes into ``--out``: ``config.json``
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import json
 import pathlib
@@ -53,7 +54,20 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="floating-point precision of the whole run (default: %(default)s; float32 "
                         "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
+                   help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
+                        "or --set sstep__epochs=100 (repeatable; values are Python literals)")
     args = p.parse_args(argv)
+    args.overrides = {}
+    for item in args.set:
+        name, sep, text = item.partition("=")
+        if not sep or not name.strip():
+            p.error(f"--set {item!r}: expected GROUP__FIELD=VALUE")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text  # a bare word, e.g. --set gmr__exploration=fixed
+        args.overrides[name.strip()] = value
     args.algorithms = [a.strip() for a in args.algorithm.split(",") if a.strip()]
     args.scenarios = [s.strip() for s in args.scenario.split(",") if s.strip()]
     for a in args.algorithms:
@@ -71,8 +85,15 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def make_config(args, scenario: str, algorithm: str) -> config.Config:
-    return config.reach(scenario, algorithm, iterations=args.iterations, num_samples=args.samples,
-                        task__T=args.T, sim__backend=args.backend)
+    base = dict(iterations=args.iterations, num_samples=args.samples, task__T=args.T,
+                sim__backend=args.backend)
+    clash = sorted(set(base) & set(args.overrides))
+    if clash:
+        raise SystemExit(f"--set {clash}: use the dedicated command-line options for these")
+    try:
+        return config.reach(scenario, algorithm, **base, **args.overrides)
+    except (ValueError, TypeError) as err:
+        raise SystemExit(f"--set: {err}") from None
 
 
 def _host(tree):
@@ -91,9 +112,11 @@ def _format_progress(it: int, total: int, m: dict) -> str:
 
 
 # One jitted function each for the whole process, so that repeated and resumed runs of the same
-# configuration reuse the compiled executables instead of compiling them again.
+# configuration reuse the compiled executables instead of compiling them again. The first-iteration
+# flag is a run-time scalar shared by all seeds: one program serves every iteration (compiling
+# is most of a short run's time on a GPU).
 init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
-step_fn = jax.jit(jax.vmap(mdgps.iteration_static, in_axes=(None, 0, 0, None)), static_argnums=(0, 3))
+step_fn = jax.jit(jax.vmap(mdgps.iteration, in_axes=(None, 0, 0, None)), static_argnums=0)
 
 
 def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool,
@@ -124,7 +147,7 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
     compile_s = None
     for it in range(start, cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)):
         t_it = time.perf_counter()
-        state, metrics = step_fn(cfg, state, it_keys[:, it], it == 0)
+        state, metrics = step_fn(cfg, state, it_keys[:, it], jnp.asarray(it == 0))
         metrics = _host(metrics)
         if compile_s is None:
             compile_s = time.perf_counter() - t_it
@@ -148,9 +171,10 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
 def evaluate_robustness(cfg: config.Config, params) -> dict:
     """Robustness of every seed's policy (leading seed axis of ``params``): the fixed random
     states and the disturbance sweep."""
-    rob = jax.jit(jax.vmap(lambda p: evaluate.robustness(cfg, p)))(params)
-    rate, rate_loose, _ = jax.jit(jax.vmap(
-        lambda p: evaluate.disturbance_sweep(cfg, p, SWEEP_RADII, SWEEP_PER_RADIUS)))(params)
+    def both(p):  # one program: one compilation
+        return (evaluate.robustness(cfg, p),
+                evaluate.disturbance_sweep(cfg, p, SWEEP_RADII, SWEEP_PER_RADIUS)[:2])
+    rob, (rate, rate_loose) = jax.jit(jax.vmap(both))(params)
     return {"robustness": _host(rob._asdict()), "sweep": {"radii": list(SWEEP_RADII),
             "success_rate": np.asarray(rate), "success_rate_loose": np.asarray(rate_loose)}}
 

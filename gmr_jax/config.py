@@ -330,6 +330,35 @@ def to_dict(cfg: Config) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+def from_dict(d: dict[str, Any]) -> Config:
+    """The inverse of :func:`to_dict` (e.g. a run's ``config.json``); lists become tuples.
+
+    Raises ValueError naming any field the dictionary has but ``Config`` does not.
+    """
+    def tup(v):
+        return tuple(tup(x) for x in v) if isinstance(v, list) else v
+
+    base = Config()
+    names = {f.name for f in dataclasses.fields(Config)}
+    unknown = sorted(set(d) - names)
+    if unknown:
+        raise ValueError(f"unknown configuration field(s) {unknown}")
+    kw: dict[str, Any] = {}
+    for name, value in d.items():
+        current = getattr(base, name)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ValueError(f"configuration group {name!r} must be a mapping, got {value!r}")
+            fields = {f.name for f in dataclasses.fields(current)}
+            bad = sorted(set(value) - fields)
+            if bad:
+                raise ValueError(f"unknown field(s) {bad} in configuration group {name!r}")
+            kw[name] = dataclasses.replace(current, **{k: tup(v) for k, v in value.items()})
+        else:
+            kw[name] = tup(value)
+    return dataclasses.replace(base, **kw)
+
+
 def to_json(cfg: Config) -> str:
     return json.dumps(to_dict(cfg), indent=2)
 

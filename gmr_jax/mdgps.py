@@ -241,8 +241,8 @@ def _run_sstep(cfg: Config, params, data: policies.SStepData, key):
 
 
 def _iteration(cfg: Config, state: TrainState, key: jax.Array, first: bool | None):
-    """One iteration; ``first`` static True/False for the first/later iterations, or None to
-    decide from ``state.iteration`` at run time (``lax.cond``).
+    """One iteration; ``first`` static True/False for the first/later iterations, None to decide
+    from ``state.iteration`` at run time, or a boolean scalar array decided at run time.
 
     All matrix products run at full float32 precision: the GPU's default (TF32 inputs, ~1e-3
     relative error) breaks the Cholesky factorisations of the dynamics fit and the LQR.
@@ -257,13 +257,16 @@ def _iteration_body(cfg: Config, state: TrainState, key: jax.Array, first: bool 
     M = x0.shape[0]
     k_sample, k_dyn, k_lin, k_s0, k_s1 = jax.random.split(key, 5)
     with_policy = uses_policy(cfg)
-    is_first = state.iteration == 0
+    # `first`: a Python bool (static branch), None (decided per seed from state.iteration), or a
+    # boolean scalar array (decided at run time, shared by all seeds: a real lax.cond under vmap).
+    static = first if isinstance(first, bool) else None
+    is_first = state.iteration == 0 if first is None else jnp.asarray(first)
 
     # 1. Sample the local controllers (or, with sample_on_policy after the first iteration, π).
-    if with_policy and cfg.sample_on_policy and first is not True:
+    if with_policy and cfg.sample_on_policy and static is not True:
         on_pol = lambda: sample(cfg, policy_sampling_fn(cfg, state.policy), x0, k_sample, cfg.num_samples)  # noqa: E731
         off_pol = lambda: sample(cfg, state.traj, x0, k_sample, cfg.num_samples)  # noqa: E731
-        trajs = on_pol() if first is False else jax.lax.cond(is_first, off_pol, on_pol)
+        trajs = on_pol() if static is False else jax.lax.cond(is_first, off_pol, on_pol)
     else:
         trajs = sample(cfg, state.traj, x0, k_sample, cfg.num_samples)
 
@@ -284,9 +287,9 @@ def _iteration_body(cfg: Config, state: TrainState, key: jax.Array, first: bool 
         def catch_up(p):
             new_p, _, ok = _run_sstep(cfg, p, sstep_data(state.traj, trajs.X), k_s0)
             return new_p, ok
-        if first is True:
+        if static is True:
             params, sstep_ok = catch_up(params)
-        elif first is None:
+        elif static is None:
             params, sstep_ok = jax.lax.cond(is_first, catch_up, lambda p: (p, jnp.asarray(True)), params)
         # 5. Linearise the global policy around the samples: the KL anchor of the C-step.
         anchor, pol_prior = linearize_global_policy(cfg, params, state.pol_prior, trajs.X, k_lin)
@@ -304,7 +307,7 @@ def _iteration_body(cfg: Config, state: TrainState, key: jax.Array, first: bool 
     else:
         predicted, actual = state.prev_cs - prev_predicted, state.prev_cs - cs_total
     adjusted = lqr.step_multiplier(predicted, actual, state.step_mult, cfg.step)
-    step_mult = state.step_mult if first is True else jnp.where(is_first, state.step_mult, adjusted)
+    step_mult = state.step_mult if static is True else jnp.where(is_first, state.step_mult, adjusted)
 
     # 7. C-step: η search under KL(p_new ‖ anchor) ≤ ε, per condition.
     epsilon = lqr.kl_epsilon(step_mult, T, cfg.step)
@@ -355,21 +358,28 @@ def _iteration_body(cfg: Config, state: TrainState, key: jax.Array, first: bool 
     return new_state, metrics
 
 
-def iteration(cfg: Config, state: TrainState, key: jax.Array):
+def iteration(cfg: Config, state: TrainState, key: jax.Array, first: jax.Array | None = None):
     """One GPS iteration (pure; jit with ``cfg`` static).
 
-    The first iteration of MDGPS/GMR also runs the catch-up S-step on the initial controllers;
-    here that is decided at run time from ``state.iteration`` (under ``vmap`` both branches of
-    that ``lax.cond`` are computed). ``train`` and the CLI decide it statically instead.
+    The first iteration of MDGPS/GMR also runs the catch-up S-step on the initial controllers,
+    decided at run time by a ``lax.cond``: from ``state.iteration`` when ``first`` is None (under
+    ``vmap`` over seeds that predicate is batched, so both branches are computed), or from
+    ``first``, a boolean scalar that ``vmap`` leaves unbatched (``in_axes=None``), so that only
+    the taken branch runs and one compiled program serves every iteration (the CLI's choice).
+    ``train`` decides it statically instead (``iteration_static``).
 
     Args:
       cfg: configuration (static).
       state: TrainState.
       key: PRNG key of this iteration.
+      first: optional boolean scalar, True for the first iteration.
     Returns:
       (new state, metrics dict of arrays, [M] where per condition).
     """
-    return _iteration(cfg, state, key, None)
+    if isinstance(first, bool):
+        raise TypeError("iteration: pass first as an array (jnp.asarray(True)); for a static "
+                        "Python bool use iteration_static")
+    return _iteration(cfg, state, key, first)
 
 
 def iteration_static(cfg: Config, state: TrainState, key: jax.Array, first: bool):

@@ -58,8 +58,9 @@ def test_policy_iteration_jit_equals_eager(algorithm):
     jitted = jax.jit(mdgps.iteration_static, static_argnums=(0, 3))(cfg, state, key, True)
     eager = mdgps.iteration_static(cfg, state, key, True)
     assert_trees_close(jitted, eager, rtol=1e-7, atol=1e-9)
-    # The run-time branch of ``iteration`` equals the static first-iteration branch.
-    dynamic = jax.jit(mdgps.iteration, static_argnums=0)(cfg, state, key)
+    # The run-time branch of ``iteration`` (the CLI's: a flag shared by all seeds) equals the
+    # static first-iteration branch.
+    dynamic = jax.jit(mdgps.iteration, static_argnums=0)(cfg, state, key, jnp.asarray(True))
     assert_trees_close(dynamic, jitted, rtol=1e-7, atol=1e-9)
     assert np.all(np.asarray(jitted[1]["ok"]))
     assert np.isfinite(np.asarray(jitted[1]["final_state_mse_policy"])).all()

@@ -1,0 +1,138 @@
+"""Why does a trained policy fail from some robustness states? ``python -m experiments.diagnose OUT``.
+
+Reads a folder written by ``python -m experiments.reach`` (its ``config.json`` and the final
+checkpoint of every policy run), executes each seed's policy noiselessly from the 50 fixed
+robustness states, and reports per seed, separately for the successful and the failed states:
+
+- ``sat``: fraction of steps with at least one torque at its limit;
+- ``|x̃|₀``: the largest entry of the policy's standardised input at the initial state, i.e. how
+  many training standard deviations the state lies from the training data;
+- ``‖∂u/∂x‖``: Frobenius norm of the policy's state Jacobian, averaged over the path;
+- ``|q̇_T|``: joint-speed norm at the last step (an arm still moving vs one at rest off target);
+- the joints whose final error exceeds 0.1 rad, counted over the failures;
+- at the target state x*: ‖u(x*)‖ (non-zero means a steady-state offset) and ρ, the spectral
+  radius of the closed loop x' = f(x, u(x)) linearised there by central differences (ρ ≥ 1: the
+  policy cannot hold the target).
+
+Writes ``diagnostics.json`` and ``diagnostics.md`` into OUT and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gmr_jax import checkpoint, config, evaluate, mdgps, tasks
+from gmr_jax import sim as sim_lib
+from gmr_jax.policies.base import normalize_input
+
+JOINT_TOLERANCE = 0.1  # rad: a joint "failed" when its final error is above this
+
+
+def closed_loop_radius(cfg: config.Config, mean_fn, x_star: jax.Array, h: float = 1e-5) -> jax.Array:
+    """Spectral radius of ∂/∂x f(x, u(x)) at x* by central differences (works with any backend)."""
+    s = sim_lib.make_sim(cfg.sim)
+    f = lambda x: sim_lib.step(s, x, mean_fn(0, x, jnp.zeros(s.dU, x.dtype)))  # noqa: E731
+    eye = jnp.eye(x_star.shape[0], dtype=x_star.dtype)
+    cols = jax.vmap(lambda e: (f(x_star + h * e) - f(x_star - h * e)) / (2 * h))(eye)  # [dX, dX]
+    return jnp.max(jnp.abs(jnp.linalg.eigvals(cols.T)))
+
+
+def diagnose_seed(cfg: config.Config, params) -> dict:
+    """Per-state diagnostics of one seed's policy (params without a seed axis): arrays only, so
+    that it can be jitted and vmapped over seeds."""
+    s = sim_lib.make_sim(cfg.sim)
+    dtype = jax.tree_util.tree_leaves(params)[0].dtype
+    x0 = evaluate.robustness_states(cfg, dtype=dtype)
+    rob = evaluate.robustness(cfg, params, x0)
+    traj = evaluate.execute_policy(cfg, params, x0)
+    mean_fn = mdgps.policy_mean_fn(cfg, params)
+    limit = jnp.asarray(s.torque_limit, dtype)
+    sat = jnp.mean(jnp.any(jnp.abs(traj.U) >= limit * (1 - 1e-9), axis=-1), axis=-1)
+    xin0 = jnp.max(jnp.abs(normalize_input(params.norm, x0)), axis=-1)
+    policy = mdgps.make_global_policy(cfg)
+    jac = jax.vmap(jax.vmap(jax.jacfwd(lambda x: policy.mean(params, x))))(traj.X)  # [S, T, dU, dX]
+    gain = jnp.mean(jnp.sqrt(jnp.sum(jac ** 2, axis=(-2, -1))), axis=-1)
+    target = tasks.target_state(cfg.task, dtype)
+    final = rob.final_x
+    joint_err = jnp.abs(final[:, : s.dU] - target[: s.dU])
+    speed = jnp.linalg.norm(final[:, s.dU:], axis=-1)
+    u_star = mean_fn(0, target, jnp.zeros(s.dU, dtype))
+    rho = closed_loop_radius(cfg, mean_fn, target)
+    return {"success": rob.success, "mse": rob.mse, "sat": sat, "xin0": xin0, "gain": gain,
+            "speed": speed, "joint_err": joint_err, "u_star_norm": jnp.linalg.norm(u_star),
+            "rho_target": rho, "norm_scale": params.norm.scale}
+
+
+def _split(values, ok):
+    def med(v):
+        return f"{np.median(v):.3g}" if v.size else "–"
+    return f"{med(values[ok])} / {med(values[~ok])}"
+
+
+def diagnose_run(out: pathlib.Path, name: str, cfg: config.Config, seeds: list[int]) -> tuple[list[dict], str]:
+    from experiments import reach  # the same jitted init as the run, for the checkpoint template
+
+    run_dir = out / name.replace("/", "_")
+    ckpt = run_dir / "checkpoints"
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    k_init, _ = jax.vmap(lambda k: mdgps.iteration_keys(k, cfg.iterations))(keys)
+    state, _ = checkpoint.restore(ckpt, reach.init_fn(cfg, k_init))
+    rows, out_rows = [], []
+    every = jax.tree_util.tree_map(np.asarray, jax.jit(jax.vmap(lambda p: diagnose_seed(cfg, p)))(state.policy))
+    for i, seed in enumerate(seeds):
+        d = {k: v[i] for k, v in every.items()}
+        ok = d["success"]
+        failed_joints = np.sum(d["joint_err"][~ok] > JOINT_TOLERANCE, axis=0)
+        rows.append({"seed": seed, **{k: v.tolist() for k, v in d.items()}})
+        out_rows.append(
+            f"| {name} | {seed} | {int(ok.sum())} | {_split(d['sat'], ok)} | {_split(d['xin0'], ok)} "
+            f"| {_split(d['gain'], ok)} | {_split(d['speed'], ok)} | {failed_joints.tolist()} "
+            f"| {float(d['u_star_norm']):.3g} | {float(d['rho_target']):.3f} | "
+            f"{np.array2string(1 / d['norm_scale'][:6], precision=2, separator=',')} |")
+    return rows, "\n".join(out_rows)
+
+
+HEADER = ("| run | seed | successes /50 | sat (ok / fail) | \\|x̃\\|₀ (ok / fail) | ‖∂u/∂x‖ (ok / fail) "
+          "| \\|q̇_T\\| (ok / fail) | failures with joint error > 0.1, joints 1–6 | ‖u(x*)‖ | ρ at x* "
+          "| input std of q (training) |\n|" + "---|" * 11)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m experiments.diagnose", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("out", help="output folder of python -m experiments.reach")
+    args = p.parse_args(argv)
+    out = pathlib.Path(args.out)
+    meta_path = out / "config.json"
+    if not meta_path.is_file():
+        p.error(f"{meta_path} not found: give the folder of a python -m experiments.reach run")
+    meta = json.loads(meta_path.read_text())
+    jax.config.update("jax_enable_x64", meta.get("precision", "float64") == "float64")
+    seeds = list(meta["seeds"])
+    results, tables = {}, []
+    for name, cfg_dict in meta["runs"].items():
+        cfg = config.from_dict(cfg_dict)
+        if not mdgps.uses_policy(cfg):
+            continue
+        if checkpoint.latest(out / name.replace("/", "_") / "checkpoints") != cfg.iterations:
+            print(f"{name}: no final checkpoint, skipped", file=sys.stderr)
+            continue
+        rows, table = diagnose_run(out, name, cfg, seeds)
+        results[name] = rows
+        tables.append(table)
+    text = "# Robustness diagnostics\n\nmedians over the successful / failed states\n\n" + HEADER + "\n" + "\n".join(tables) + "\n"
+    (out / "diagnostics.json").write_text(json.dumps(results))
+    (out / "diagnostics.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
