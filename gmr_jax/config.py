@@ -459,6 +459,11 @@ class GMRConfig:
 
     Attributes:
       latent: size of the latent state z.
+      encoder_squash: c > 0 feeds the encoder c·tanh(x̃/c) instead of the standardised state x̃
+        (and makes that the reconstruction target); 0 feeds x̃ itself. The reflex still acts on
+        the whole state, u = Ψ_K(z)·x + Ψ_k(z); only the choice of reflex saturates, so a state
+        far outside the training data gets a reflex generated from a latent the networks were
+        trained on, instead of one extrapolated from z far outside it.
       encoder_hidden: hidden widths of h_enc: x̃ [dX] → … → (μ_z, log σ²_z) [2·latent].
       decoder_hidden: hidden widths of h_dec: z → … → x̂ [dX] (the normalised state).
       translation_hidden: hidden widths of h_trans: z → … → (Ψ_K [dU·dX], Ψ_k [dU], the
@@ -493,6 +498,7 @@ class GMRConfig:
     """
 
     latent: int = 4
+    encoder_squash: float = 0.0
     encoder_hidden: tuple[int, ...] = (64, 64)
     decoder_hidden: tuple[int, ...] = (64, 64)
     translation_hidden: tuple[int, ...] = (64, 64)
@@ -512,6 +518,8 @@ class GMRConfig:
             value = getattr(self, name)
             if not (isinstance(value, tuple) and all(isinstance(h, int) and h >= 1 for h in value)):
                 raise ValueError(f"gmr.{name}={value!r}: must be a tuple of positive integers")
+        if not (self.encoder_squash >= 0 and math.isfinite(self.encoder_squash)):
+            raise ValueError(f"gmr.encoder_squash={self.encoder_squash!r}: must be a number ≥ 0")
         if not (0 <= self.negative_slope < 1):
             raise ValueError(f"gmr.negative_slope={self.negative_slope!r}: must be in [0, 1)")
         if not (self.alpha >= 0 and math.isfinite(self.alpha)):

@@ -250,9 +250,15 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         return PolicyParams(net=net, norm=identity_normalization(dX, dtype),
                             var=jnp.full((dU,), cfg.init_var, dtype))
 
+    def encoder_input(norm: Normalization, x):
+        """What h_enc sees: x̃, or c·tanh(x̃/c) with c = encoder_squash > 0 (bounded far away)."""
+        xn = normalize_input(norm, x)
+        c = cfg.encoder_squash
+        return xn if c <= 0 else c * jnp.tanh(xn / c)
+
     def encode(params: PolicyParams, x):
         """x [..., dX] (raw) -> (μ_z, log σ²_z), each [..., latent]."""
-        return apply(params, GMRNet.encode, normalize_input(params.norm, x))
+        return apply(params, GMRNet.encode, encoder_input(params.norm, x))
 
     def decode(params: PolicyParams, z):
         """z [..., latent] -> x̂ [..., dX] (standardised coordinates)."""
@@ -313,7 +319,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         means, as they enter the sum except for α) and ``action_mse`` = mean (u − tgt_mu)².
         """
         norm = params.norm
-        xn = normalize_input(norm, batch.x)
+        xn = encoder_input(norm, batch.x)  # also the reconstruction target
         mu, logvar = apply(params, GMRNet.encode, xn)
         eps = jax.random.normal(key, mu.shape, mu.dtype)
         z = mu + jnp.exp(0.5 * logvar) * eps
