@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import concurrent.futures
 import dataclasses
 import json
 import pathlib
@@ -54,6 +55,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="floating-point precision of the whole run (default: %(default)s; float32 "
                         "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="runs (scenario × algorithm) trained side by side: they compile concurrently "
+                        "and share the device (default 0: all of them)")
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
                         "or --set sstep__epochs=100 (repeatable; values are Python literals)")
@@ -76,6 +80,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     for s in args.scenarios:
         if s not in config.SCENARIOS:
             p.error(f"--scenario {s!r}: allowed values are {tuple(config.SCENARIOS)}")
+    if args.jobs < 0:
+        p.error(f"--jobs must be ≥ 0 (0: automatic), got {args.jobs}")
     for name in ("iterations", "samples", "seeds", "T"):
         if getattr(args, name) < 1:
             p.error(f"--{name} must be a positive integer, got {getattr(args, name)}")
@@ -120,11 +126,12 @@ step_fn = jax.jit(jax.vmap(mdgps.iteration, in_axes=(None, 0, 0, None)), static_
 
 
 def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool,
-            stop_after: int | None = None) -> dict:
+            stop_after: int | None = None, label: str = "") -> dict:
     """Train ``cfg`` for ``seeds`` in parallel; checkpoint after every iteration.
 
     ``stop_after`` ends the loop after that many iterations (as an interruption would); a later
-    call with ``resume=True`` continues from the checkpoint.
+    call with ``resume=True`` continues from the checkpoint. ``label`` prefixes the progress
+    lines (runs may execute side by side).
 
     Returns:
       dict with the stacked metrics history (leading axes [iteration, seed, ...]) and timing.
@@ -143,7 +150,7 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
         state, saved = checkpoint.restore(ckpt_dir, state, expect=report.jsonable(meta))
         history = [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
         start = len(history)
-        print(f"  resumed from iteration {start}")
+        print(f"{label}  resumed from iteration {start}", flush=True)
     compile_s = None
     for it in range(start, cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)):
         t_it = time.perf_counter()
@@ -159,7 +166,7 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
         history.append(metrics)
         checkpoint.save(ckpt_dir, state, step=it + 1,
                         metadata={**meta, "history": [report.jsonable(h) for h in history]})
-        print(_format_progress(it + 1, cfg.iterations, metrics), flush=True)
+        print(label + _format_progress(it + 1, cfg.iterations, metrics), flush=True)
     wall = time.perf_counter() - t0
     stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
     result = {"history": stacked, "wall_s": wall, "first_iteration_s": compile_s}
@@ -192,12 +199,20 @@ def main(argv=None) -> int:
         "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
         "seeds": seeds, "device": device, "precision": args.precision, "python": platform.python_version(), "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in configs.items()}}, indent=2))
-    runs = {}
-    t_all = time.perf_counter()
+    jobs = args.jobs or len(configs)
     for (scenario, algorithm), cfg in configs.items():
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
-        runs[(scenario, algorithm)] = run_one(cfg, seeds, out / f"{scenario}_{algorithm}", args.resume)
+    if jobs > 1:
+        print(f"{min(jobs, len(configs))} runs side by side", flush=True)
+    t_all = time.perf_counter()
+    # Side by side, the runs' XLA compilations (most of a short GPU run) use several CPU cores and
+    # their iterations interleave on the device; progress lines carry the run's name.
+    with concurrent.futures.ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = {key: pool.submit(run_one, cfg, seeds, out / f"{key[0]}_{key[1]}", args.resume,
+                                    label=f"[{key[0]}/{key[1]}]" if len(configs) > 1 else "")
+                   for key, cfg in configs.items()}
+        runs = {key: f.result() for key, f in futures.items()}
     total = time.perf_counter() - t_all
     results = report.write_results(out, configs, runs, seeds, device, total)
     if not args.no_plots:

@@ -171,6 +171,12 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
             cells = [f"{v[i].mean():.4g} ({v[i].min():.3g}–{v[i].max():.3g})" for v in curves.values()]
             lines.append(f"| {i + 1} | " + " | ".join(cells) + f" | {cost[i].mean():.2f} |")
         lines.append("")
+        imitation = imitation_iteration(run)
+        if imitation is not None or "final_state_mse_policy" in curves:
+            lines.append(f"- {_label(algorithm, 'final_state_mse_policy')} imitates its LQR base layer "
+                         f"(mean final-state MSE within {IMITATION_FACTOR:g}× of the base layer's at that "
+                         f"and every later iteration) from iteration {imitation or 'never'}"
+                         + (" (paper: GMR after about 2 iterations)." if algorithm == "gmr" else "."))
         for curve, v in curves.items():
             final = v[-1]
             lines.append(f"- {_label(algorithm, curve)}: final-state MSE < {thr} at the last iteration "
@@ -178,6 +184,21 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
                          f"(< {thr2}: {int((final < thr2).sum())}/{len(final)}).")
         lines.append("")
     path.write_text("\n".join(lines))
+
+
+IMITATION_FACTOR = 2.0
+
+
+def imitation_iteration(run) -> int | None:
+    """First iteration (1-based) from which the policy's mean final-state MSE stays within
+    IMITATION_FACTOR × the LQR base layer's (means over seeds and conditions); None if never."""
+    h = run["history"]
+    if "final_state_mse_policy" not in h:
+        return None
+    pol = np.asarray(h["final_state_mse_policy"]).reshape(len(h["final_state_mse_policy"]), -1).mean(axis=1)
+    base = np.asarray(h["final_state_mse_lqr"]).reshape(len(pol), -1).mean(axis=1)
+    ok = pol <= IMITATION_FACTOR * base
+    return next((i + 1 for i in range(len(ok)) if ok[i:].all()), None)
 
 
 # The paper's robustness table (successes out of 50 random initial states after 10 iterations).

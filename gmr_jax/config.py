@@ -498,7 +498,7 @@ class GMRConfig:
     """
 
     latent: int = 4
-    encoder_squash: float = 0.0
+    encoder_squash: float = 1.0
     encoder_hidden: tuple[int, ...] = (64, 64)
     decoder_hidden: tuple[int, ...] = (64, 64)
     translation_hidden: tuple[int, ...] = (64, 64)
