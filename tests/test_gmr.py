@@ -83,12 +83,17 @@ def _np_chol(r, cfg):
     return sig[:, None] * R
 
 
+def _np_squash(xn, cfg):
+    c = cfg.encoder_squash
+    return c * np.tanh(xn / c) if c > 0 else xn
+
+
 def _np_reflex(params, x, cfg, z=None):
     """Numpy GMR at z (default μ_z): (u, Ψ_K, Ψ_k, Ψ_Σ, μ_z, log σ²_z) for one x [dX]."""
     net = params.net["params"]
     scale, bias = np.asarray(params.norm.scale), np.asarray(params.norm.bias)
     xn = x * scale + bias
-    enc = _np_mlp(net["encoder"], xn, cfg.negative_slope)
+    enc = _np_mlp(net["encoder"], _np_squash(xn, cfg), cfg.negative_slope)
     mu, lv = enc[:LAT], enc[LAT:]
     z = mu if z is None else z
     out = _np_mlp(net["translation"], z, cfg.negative_slope)
@@ -168,7 +173,8 @@ def test_make_policy_hook_and_validation():
     assert make_policy("gmr", CFG) is make_policy("gmr", CFG)
     assert make_gmr_policy(CFG) is make_gmr(CFG).policy
     for bad in (dict(latent=0), dict(alpha=-1.0), dict(head_coordinates="x"), dict(exploration="y"),
-                dict(cov_std_range=1.0), dict(negative_slope=1.5), dict(encoder_hidden=[64])):
+                dict(cov_std_range=1.0), dict(negative_slope=1.5), dict(encoder_hidden=[64]),
+                dict(encoder_squash=-1.0)):
         with pytest.raises(ValueError, match="gmr."):
             GMRConfig(**bad)
 
@@ -191,6 +197,25 @@ def test_forward_matches_numpy(cfg):
     # u = Ψ_K x + Ψ_k with the raw state; a single row equals the batched row
     np.testing.assert_allclose(u, np.einsum("bij,bj->bi", refl.K, x) + refl.k, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(refl.logdet, np.linalg.slogdet(np.asarray(cov))[1], rtol=1e-10, atol=1e-10)
+
+
+def test_encoder_input_is_bounded_far_from_the_data():
+    """With encoder_squash > 0 the latent, hence the reflex, saturates far away, and the action
+    stays the saturated reflex applied linearly to the state; without it the latent keeps growing."""
+    d = np.random.default_rng(5).normal(size=dX)
+    for cfg, bounded in ((CFG, True), (dataclasses.replace(CFG, encoder_squash=0.0), False)):
+        F = _fns(cfg)
+        params = _with_norm(_init(cfg, key=2))
+        far1, far2 = jnp.asarray(1e3 * d), jnp.asarray(1e4 * d)
+        mu1, mu2 = F.encode(params, far1)[0], F.encode(params, far2)[0]
+        if bounded:
+            np.testing.assert_allclose(mu1, mu2, rtol=1e-12, atol=1e-12)
+            refl = F.reflex(params, far1)
+            np.testing.assert_allclose(F.mean(params, far2) - F.mean(params, far1),
+                                       refl.K @ (far2 - far1), rtol=1e-9)
+        else:
+            assert np.linalg.norm(mu2) > 5 * np.linalg.norm(mu1)
+    assert CFG.encoder_squash == GMRConfig().encoder_squash == 1.0
 
 
 def test_cholesky_factor_centre_and_bounds():
@@ -286,7 +311,7 @@ def test_loss_terms_against_direct_computation():
         _, _, _, _, mu, lv = _np_reflex(params, x[b], CFG)
         z = mu + np.exp(0.5 * lv) * eps[b]
         u, K, _, Psi, _, _ = _np_reflex(params, x[b], CFG, z=z)
-        xn = x[b] * scale + bias
+        xn = _np_squash(x[b] * scale + bias, CFG)  # the encoder's input is the reconstruction target
         xhat = _np_mlp(params.net["params"]["decoder"], z)
         du, dK = u - tgt[b], K - Kp[b]
         terms["recon"][b] = w[b] * np.sum((xn - xhat) ** 2)
