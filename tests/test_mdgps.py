@@ -130,3 +130,27 @@ def test_checkpoint_resume_equals_uninterrupted_run(tmp_path: pathlib.Path):
     out = subprocess.run([sys.executable, "-c", _RESUME_SCRIPT, str(tmp_path), str(here)],
                          capture_output=True, text=True, timeout=1200, env=env)
     assert out.returncode == 0 and "RESUME-OK" in out.stdout, out.stdout[-3000:] + out.stderr[-3000:]
+
+
+def test_sampling_the_global_policy_applies_its_noisy_action():
+    """``sample_on_policy``'s rollouts: every applied torque is the clipped u = mean(x) + L·ε_t of
+    the global policy at the visited state, with the toolbox's smoothed noise of the sample key."""
+    from gmr_jax import noise as noise_lib
+    from gmr_jax import policies, tasks
+    from gmr_jax import sim as sim_lib
+
+    cfg = small("gmr", sample_on_policy=True)
+    s = sim_lib.make_sim(cfg.sim)
+    params = mdgps.init(cfg, jax.random.PRNGKey(3)).policy
+    x0 = tasks.initial_states(cfg.task)[:1]
+    key = jax.random.PRNGKey(4)
+    trajs = jax.jit(lambda p, k: mdgps.sample(cfg, mdgps.policy_sampling_fn(cfg, p), x0, k, 2))(params, key)
+    keys = jax.random.split(key, (1, 2))
+    pol = mdgps.make_global_policy(cfg)
+    for n in range(2):
+        eps = noise_lib.smooth_noise(keys[0, n], cfg.task.T, s.dU, cfg.noise).astype(x0.dtype)
+        X = trajs.X[0, n]
+        u = jax.vmap(lambda x, e: policies.noisy_action(pol, params, x, e))(X, eps)
+        np.testing.assert_allclose(trajs.U[0, n], sim_lib.clip_torques(s, u), rtol=1e-9, atol=1e-9)
+        # the noise is there: the applied torques are not the policy means
+        assert not np.allclose(trajs.U[0, n], jax.vmap(lambda x: pol.mean(params, x))(X), atol=1e-6)
