@@ -50,8 +50,8 @@ def diagnose_seed(cfg: config.Config, params) -> dict:
     s = sim_lib.make_sim(cfg.sim)
     dtype = jax.tree_util.tree_leaves(params)[0].dtype
     x0 = evaluate.robustness_states(cfg, dtype=dtype)
-    rob = evaluate.robustness(cfg, params, x0)
     traj = evaluate.execute_policy(cfg, params, x0)
+    rob = evaluate.summarize_robustness(cfg, x0, traj)
     mean_fn = mdgps.policy_mean_fn(cfg, params)
     limit = jnp.asarray(s.torque_limit, dtype)
     sat = jnp.mean(jnp.any(jnp.abs(traj.U) >= limit * (1 - 1e-9), axis=-1), axis=-1)

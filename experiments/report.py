@@ -171,8 +171,8 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
             cells = [f"{v[i].mean():.4g} ({v[i].min():.3g}–{v[i].max():.3g})" for v in curves.values()]
             lines.append(f"| {i + 1} | " + " | ".join(cells) + f" | {cost[i].mean():.2f} |")
         lines.append("")
-        imitation = imitation_iteration(run)
-        if imitation is not None or "final_state_mse_policy" in curves:
+        if "final_state_mse_policy" in curves:
+            imitation = imitation_iteration(run)
             lines.append(f"- {_label(algorithm, 'final_state_mse_policy')} imitates its LQR base layer "
                          f"(mean final-state MSE within {IMITATION_FACTOR:g}× of the base layer's at that "
                          f"and every later iteration) from iteration {imitation or 'never'}"

@@ -311,6 +311,9 @@ def reach(scenario: str = "A", algorithm: str = "lqr", **overrides: Any) -> Conf
         else:
             top[key] = value
     base = Config()
+    unknown_top = sorted(set(top) - {f.name for f in dataclasses.fields(Config)})
+    if unknown_top:
+        raise ValueError(f"unknown configuration field(s) {unknown_top}")
     groups = {}
     for group, values in nested.items():
         if not hasattr(base, group):
@@ -333,30 +336,22 @@ def to_dict(cfg: Config) -> dict[str, Any]:
 def from_dict(d: dict[str, Any]) -> Config:
     """The inverse of :func:`to_dict` (e.g. a run's ``config.json``); lists become tuples.
 
-    Raises ValueError naming any field the dictionary has but ``Config`` does not.
+    Goes through :func:`reach`, so unknown groups or fields raise its ValueError naming them.
     """
     def tup(v):
         return tuple(tup(x) for x in v) if isinstance(v, list) else v
 
-    base = Config()
-    names = {f.name for f in dataclasses.fields(Config)}
-    unknown = sorted(set(d) - names)
-    if unknown:
-        raise ValueError(f"unknown configuration field(s) {unknown}")
-    kw: dict[str, Any] = {}
+    d = dict(d)
+    task = dict(d.pop("task", {}))
+    scenario = task.pop("scenario", TaskConfig.scenario)
+    algorithm = d.pop("algorithm", Config.algorithm)
+    overrides = {f"task__{k}": tup(v) for k, v in task.items()}
     for name, value in d.items():
-        current = getattr(base, name)
-        if dataclasses.is_dataclass(current):
-            if not isinstance(value, dict):
-                raise ValueError(f"configuration group {name!r} must be a mapping, got {value!r}")
-            fields = {f.name for f in dataclasses.fields(current)}
-            bad = sorted(set(value) - fields)
-            if bad:
-                raise ValueError(f"unknown field(s) {bad} in configuration group {name!r}")
-            kw[name] = dataclasses.replace(current, **{k: tup(v) for k, v in value.items()})
+        if isinstance(value, dict):
+            overrides.update({f"{name}__{k}": tup(v) for k, v in value.items()})
         else:
-            kw[name] = tup(value)
-    return dataclasses.replace(base, **kw)
+            overrides[name] = tup(value)
+    return reach(scenario, algorithm, **overrides)
 
 
 def to_json(cfg: Config) -> str:

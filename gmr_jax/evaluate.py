@@ -84,8 +84,13 @@ def robustness(cfg: Config, params, x0: jax.Array | None = None) -> Robustness:
     dtype = jax.tree_util.tree_leaves(params)[0].dtype
     if x0 is None:
         x0 = robustness_states(cfg, dtype=dtype)
+    return summarize_robustness(cfg, x0, execute_policy(cfg, params, x0))
+
+
+def summarize_robustness(cfg: Config, x0: jax.Array, out) -> Robustness:
+    """Robustness from executed rollouts: x0 [S, dX] and their Trajectories [S, T, ...] (e.g.
+    from :func:`execute_policy`, when the caller needs the trajectories too)."""
     target = tasks.target_state(cfg.task, x0.dtype)
-    out = execute_policy(cfg, params, x0)
     final_x = out.X[:, -1]
     mse = tasks.final_state_mse(final_x, target)
     train_x0 = tasks.initial_states(cfg.task, x0.dtype)

@@ -5,6 +5,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gmr_jax import config, evaluate, mdgps, sim, tasks
 
@@ -60,3 +61,15 @@ def test_disturbance_sweep_radius_zero_starts_at_training_states():
     np.testing.assert_allclose(np.asarray(mse[0]), np.asarray(direct.mse), rtol=1e-9)
     assert np.all((np.asarray(rate) >= 0) & (np.asarray(rate) <= 1))
     assert np.all(np.asarray(rate_loose) >= np.asarray(rate))
+
+
+def test_config_round_trips_through_its_json_and_rejects_unknown_fields():
+    """A run's config.json rebuilds the same (hashable, jit-static) Config; typos are named."""
+    import json
+
+    cfg = config.reach("AB", "gmr", gmr__alpha=0.3, task__T=20, sample_on_policy=True)
+    again = config.from_dict(json.loads(config.to_json(cfg)))
+    assert again == cfg and hash(again) == hash(cfg)
+    for bad, name in (({"gmr": {"alph": 1.0}}, "alph"), ({"foo": 1}, "foo")):
+        with pytest.raises(ValueError, match=name):
+            config.from_dict(bad)
