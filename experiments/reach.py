@@ -14,9 +14,11 @@ import ast
 import concurrent.futures
 import dataclasses
 import json
+import os
 import pathlib
 import platform
 import sys
+import threading
 import time
 
 import jax
@@ -30,6 +32,12 @@ DEFAULT_ALGORITHMS = "gmr,mdgps"
 DEFAULT_SCENARIOS = "A,AB"
 SWEEP_RADII = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0)  # rad, disturbance of the training joint angles
 SWEEP_PER_RADIUS = 10
+# Fewest parallel rollouts for which "auto" picks MJX on a GPU. On an H100 in float64 a call of
+# 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
+# 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
+MJX_MIN_ROLLOUTS = 32
+DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
+    pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -46,8 +54,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--seeds", type=int, default=1, help="seeds trained in parallel (default: 1)")
     p.add_argument("--first-seed", type=int, default=0, help="first seed (default: 0)")
     p.add_argument("--T", type=int, default=config.TaskConfig.T, help="horizon (default: %(default)s)")
-    p.add_argument("--backend", default=config.SimConfig.backend, choices=("auto", "mjx", "mujoco"),
-                   help="physics backend (default: %(default)s)")
+    p.add_argument("--backend", default="auto", choices=("auto", "mjx", "mujoco"),
+                   help="physics backend (default: %(default)s: C MuJoCo on a CPU; on a GPU, MJX "
+                        f"when a rollout batch holds at least {MJX_MIN_ROLLOUTS} rollouts (seeds × "
+                        "conditions × samples), C MuJoCo below that, where MJX's per-step latency "
+                        "dominates; the choice is written to config.json)")
     p.add_argument("--out", default="results/reach", help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="continue from the checkpoints in --out (same settings required)")
@@ -58,6 +69,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--jobs", type=int, default=0,
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
+    p.add_argument("--autotune", action="store_true",
+                   help="let XLA time kernel variants on the GPU while compiling. Off by default: "
+                        "runs that compile while others train make those timings slow and noisy, "
+                        "and kernels chosen by timing make results differ from call to call")
+    p.add_argument("--compilation-cache", default=DEFAULT_COMPILATION_CACHE, metavar="DIR",
+                   help="persistent XLA compilation cache: a repeated run skips most of its "
+                        "compilation (default: $JAX_COMPILATION_CACHE_DIR or %(default)s; "
+                        "'none' disables it)")
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
                         "or --set sstep__epochs=100 (repeatable; values are Python literals)")
@@ -90,9 +109,21 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
+def resolve_backend(args) -> str:
+    """The physics backend of ``--backend`` for this run: "auto" becomes "mujoco" on a CPU, and
+    on a GPU "mjx" when the sampling batch (seeds × conditions × samples, the largest of the
+    scenarios) reaches ``MJX_MIN_ROLLOUTS``, else "mujoco"."""
+    if args.backend != "auto":
+        return args.backend
+    if jax.default_backend() != "gpu":
+        return "mujoco"
+    conditions = max(config.reach(s, "lqr").task.num_conditions for s in args.scenarios)
+    return "mjx" if args.seeds * conditions * args.samples >= MJX_MIN_ROLLOUTS else "mujoco"
+
+
 def make_config(args, scenario: str, algorithm: str) -> config.Config:
     base = dict(iterations=args.iterations, num_samples=args.samples, task__T=args.T,
-                sim__backend=args.backend)
+                sim__backend=resolve_backend(args))
     clash = sorted(set(base) & set(args.overrides))
     if clash:
         raise SystemExit(f"--set {clash}: use the dedicated command-line options for these")
@@ -125,6 +156,46 @@ init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
 step_fn = jax.jit(jax.vmap(mdgps.iteration, in_axes=(None, 0, 0, None)), static_argnums=0)
 
 
+class _Timer(dict):
+    """Wall seconds per phase name (``with timer("compile"): ...``); repeated phases add up."""
+
+    def __call__(self, name: str):
+        timer = self
+
+        class _Phase:
+            def __enter__(self):
+                self.t = time.perf_counter()
+
+            def __exit__(self, *exc):
+                timer[name] = timer.get(name, 0.0) + time.perf_counter() - self.t
+        return _Phase()
+
+
+# Compiled iteration programs of this process, per (config, number of seeds): a resumed or
+# repeated run of the same configuration reuses its executable.
+_compiled: dict = {}
+_trace_lock = threading.Lock()
+
+
+def compile_iteration(cfg: config.Config, state, keys, timer: _Timer):
+    """The compiled ``step_fn`` for ``cfg`` and this seed batch (``state``: the batched
+    TrainState, arrays or ``ShapeDtypeStruct``s; ``keys``: [seeds] iteration keys), traced,
+    lowered and compiled ahead of time so that the three phases are timed separately (tracing
+    holds Python's GIL; XLA's compilation does not, so side-by-side runs overlap only there)."""
+    key = (cfg, keys.shape[0])
+    if key not in _compiled:
+        # One run traces at a time: tracing is Python work under the GIL, so side-by-side traces
+        # only delay each other; serialised, the first run's compilation starts sooner.
+        with _trace_lock:
+            with timer("trace_s"):
+                traced = step_fn.trace(cfg, state, keys, jnp.asarray(True))
+            with timer("lower_s"):
+                lowered = traced.lower()
+        with timer("compile_s"):
+            _compiled[key] = lowered.compile()
+    return _compiled[key]
+
+
 def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool,
             stop_after: int | None = None, label: str = "") -> dict:
     """Train ``cfg`` for ``seeds`` in parallel; checkpoint after every iteration.
@@ -134,7 +205,9 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
     lines (runs may execute side by side).
 
     Returns:
-      dict with the stacked metrics history (leading axes [iteration, seed, ...]) and timing.
+      dict with the stacked metrics history (leading axes [iteration, seed, ...]), ``wall_s``
+      and ``timing``: seconds per phase (init, trace, lower, compile, iterations, checkpoints,
+      and for policies the robustness evaluation's trace/lower/compile/run).
     """
     run_dir.mkdir(parents=True, exist_ok=True)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
@@ -143,52 +216,120 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
     meta = {"config": config.to_dict(cfg), "seeds": list(seeds)}
 
     t0 = time.perf_counter()
-    state = init_fn(cfg, k_init)
-    history: list[dict] = []
-    start = 0
-    if resume and checkpoint.latest(ckpt_dir) is not None:
-        state, saved = checkpoint.restore(ckpt_dir, state, expect=report.jsonable(meta))
+    timer = _Timer()
+
+    def initial_state():
+        with timer("init_s"):
+            return jax.block_until_ready(init_fn(cfg, k_init))
+    # The programs are compiled from the state's shapes while init compiles and runs beside them.
+    shapes = jax.eval_shape(lambda k: init_fn(cfg, k), k_init)
+    state_future = _background.submit(initial_state)
+    state, history, start = None, [], 0
+    if resume and checkpoint.latest(ckpt_dir) is not None:  # validated before anything compiles
+        state, saved = checkpoint.restore(ckpt_dir, state_future.result(), expect=report.jsonable(meta))
         history = [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
         start = len(history)
         print(f"{label}  resumed from iteration {start}", flush=True)
-    compile_s = None
-    for it in range(start, cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)):
-        t_it = time.perf_counter()
-        state, metrics = step_fn(cfg, state, it_keys[:, it], jnp.asarray(it == 0))
-        metrics = _host(metrics)
-        if compile_s is None:
-            compile_s = time.perf_counter() - t_it
-        if not np.all(metrics["ok"]):
-            bad = np.argwhere(~np.asarray(metrics["ok"]))
-            raise FloatingPointError(
-                f"iteration {it + 1}: the C-step failed (non-finite controller or η reached max_eta) "
-                f"for (seed index, condition) {bad.tolist()}")
-        history.append(metrics)
-        checkpoint.save(ckpt_dir, state, step=it + 1,
-                        metadata={**meta, "history": [report.jsonable(h) for h in history]})
-        print(label + _format_progress(it + 1, cfg.iterations, metrics), flush=True)
-    wall = time.perf_counter() - t0
+    stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
+    if start < stop:
+        step = compile_iteration(cfg, shapes, it_keys[:, 0], timer)
+    robustness = None
+    if mdgps.uses_policy(cfg) and stop == cfg.iterations:
+        robustness = compile_robustness(cfg, shapes.policy, timer)
+    if state is None:
+        state = state_future.result()
+    iteration_s = []
+
+    def save(done: int, st, hist):
+        with timer("checkpoint_s"):
+            checkpoint.save(ckpt_dir, st, step=done,
+                            metadata={**meta, "history": [report.jsonable(h) for h in hist]})
+
+    # Each iteration's checkpoint is written while the next iteration runs on the device (the
+    # call below returns before the device has finished); an exception or an interruption still
+    # writes the last finished iteration's checkpoint.
+    pending = None
+    try:
+        for it in range(start, stop):
+            t_it = time.perf_counter()
+            new_state, metrics = step(state, it_keys[:, it], jnp.asarray(it == 0))
+            if pending is not None:
+                save(*pending)
+                pending = None
+            metrics = _host(metrics)
+            iteration_s.append(time.perf_counter() - t_it)
+            if not np.all(metrics["ok"]):
+                bad = np.argwhere(~np.asarray(metrics["ok"]))
+                raise FloatingPointError(
+                    f"iteration {it + 1}: the C-step failed (non-finite controller or η reached "
+                    f"max_eta) for (seed index, condition) {bad.tolist()}")
+            state = new_state
+            history.append(metrics)
+            pending = (it + 1, state, list(history))
+            print(label + _format_progress(it + 1, cfg.iterations, metrics), flush=True)
+    finally:
+        if pending is not None:
+            save(*pending)
+    timer["iterations_s"] = float(np.sum(iteration_s))
     stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
-    result = {"history": stacked, "wall_s": wall, "first_iteration_s": compile_s}
+    result = {"history": stacked, "iteration_s": iteration_s}
     if mdgps.uses_policy(cfg) and len(history) == cfg.iterations:
-        result.update(evaluate_robustness(cfg, state.policy))
+        result.update(evaluate_robustness(cfg, state.policy, timer, robustness))
+    result["wall_s"] = time.perf_counter() - t0
+    result["timing"] = dict(timer)
     return result
 
 
-def evaluate_robustness(cfg: config.Config, params) -> dict:
-    """Robustness of every seed's policy (leading seed axis of ``params``): the fixed random
-    states and the disturbance sweep."""
-    def both(p):  # one program: one compilation
+def _robustness_fn(cfg: config.Config):
+    def both(p):  # the fixed random states and the disturbance sweep: one program
         return (evaluate.robustness(cfg, p),
                 evaluate.disturbance_sweep(cfg, p, SWEEP_RADII, SWEEP_PER_RADIUS)[:2])
-    rob, (rate, rate_loose) = jax.jit(jax.vmap(both))(params)
-    return {"robustness": _host(rob._asdict()), "sweep": {"radii": list(SWEEP_RADII),
+    return jax.jit(jax.vmap(both))
+
+
+def compile_robustness(cfg: config.Config, params, timer: _Timer):
+    """Trace and lower the robustness program for ``params`` (arrays or ``ShapeDtypeStruct``s
+    with a leading seed axis) here, and compile it in a background thread: a run compiles it
+    while it trains. Returns a future of the compiled program."""
+    with _trace_lock:
+        with timer("robustness_trace_s"):
+            traced = _robustness_fn(cfg).trace(params)
+        with timer("robustness_lower_s"):
+            lowered = traced.lower()
+
+    def compile_():
+        with timer("robustness_compile_s"):
+            return lowered.compile()
+    return _background.submit(compile_)
+
+
+_background = concurrent.futures.ThreadPoolExecutor(max_workers=8, thread_name_prefix="compile")
+
+
+def evaluate_robustness(cfg: config.Config, params, timer: _Timer | None = None,
+                        compiled=None) -> dict:
+    """Robustness of every seed's policy (leading seed axis of ``params``): the fixed random
+    states and the disturbance sweep. ``compiled``: a future from :func:`compile_robustness`
+    (default: compile here)."""
+    timer = _Timer() if timer is None else timer
+    compiled = compile_robustness(cfg, params, timer) if compiled is None else compiled
+    with timer("robustness_wait_s"):
+        program = compiled.result()
+    with timer("robustness_run_s"):
+        rob, (rate, rate_loose) = _host(program(params))
+    return {"robustness": rob._asdict(), "sweep": {"radii": list(SWEEP_RADII),
             "success_rate": np.asarray(rate), "success_rate_loose": np.asarray(rate_loose)}}
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if not args.autotune and "xla_gpu_autotune_level" not in flags:
+        # Read when the backend starts (the first device query below), so set before it.
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_gpu_autotune_level=0".strip()
     jax.config.update("jax_enable_x64", args.precision == "float64")
+    if args.compilation_cache != "none":
+        jax.config.update("jax_compilation_cache_dir", args.compilation_cache)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
@@ -197,7 +338,8 @@ def main(argv=None) -> int:
     configs = {(s, a): make_config(args, s, a) for s in args.scenarios for a in args.algorithms}
     (out / "config.json").write_text(json.dumps({
         "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
-        "seeds": seeds, "device": device, "precision": args.precision, "python": platform.python_version(), "jax": jax.__version__,
+        "seeds": seeds, "device": device, "precision": args.precision,
+        "compilation_cache": args.compilation_cache, "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(), "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in configs.items()}}, indent=2))
     jobs = args.jobs or len(configs)
     for (scenario, algorithm), cfg in configs.items():
@@ -209,10 +351,14 @@ def main(argv=None) -> int:
     # Side by side, the runs' XLA compilations (most of a short GPU run) use several CPU cores and
     # their iterations interleave on the device; progress lines carry the run's name.
     with concurrent.futures.ThreadPoolExecutor(max_workers=jobs) as pool:
-        futures = {key: pool.submit(run_one, cfg, seeds, out / f"{key[0]}_{key[1]}", args.resume,
-                                    label=f"[{key[0]}/{key[1]}]" if len(configs) > 1 else "")
-                   for key, cfg in configs.items()}
-        runs = {key: f.result() for key, f in futures.items()}
+        # The longest runs (GMR's S-step is the slowest, and more conditions mean more data)
+        # start first: they trace first and reach the device first.
+        order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr",
+                                               -configs[k].task.num_conditions))
+        futures = {key: pool.submit(run_one, configs[key], seeds, out / f"{key[0]}_{key[1]}",
+                                    args.resume, label=f"[{key[0]}/{key[1]}]" if len(configs) > 1 else "")
+                   for key in order}
+        runs = {key: futures[key].result() for key in configs}
     total = time.perf_counter() - t_all
     results = report.write_results(out, configs, runs, seeds, device, total)
     if not args.no_plots:

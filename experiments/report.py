@@ -69,7 +69,8 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s) -> d
                     "success_rate_loose": jsonable(run["sweep"]["success_rate_loose"][i])}
             records.append(rec)
     results = {"device": device, "seeds": list(seeds), "total_wall_s": total_s,
-               "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], "first_iteration_s": r["first_iteration_s"]}
+               "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], **r.get("timing", {}),
+                                       "iteration_s": list(r.get("iteration_s", []))}
                           for (s, a), r in runs.items()},
                "runs": records}
     (out / "results.json").write_text(json.dumps(results, indent=1))
@@ -149,6 +150,25 @@ def plot_paths(path: pathlib.Path, configs, runs) -> None:
     plt.close(fig)
 
 
+TIMING_PHASES = (("init_s", "init"), ("trace_s", "trace"), ("lower_s", "lower"),
+                 ("compile_s", "compile"), ("iterations_s", "iterations"),
+                 ("checkpoint_s", "checkpoints"), ("robustness_trace_s", "robustness trace"),
+                 ("robustness_lower_s", "lower"), ("robustness_compile_s", "compile (beside training)"),
+                 ("robustness_wait_s", "waited for"), ("robustness_run_s", "run"))
+
+
+def format_timing(run) -> str:
+    """The run's seconds per phase, e.g. "init 1.2 s, trace 3.4 s, …" (phases it did not have
+    are left out; side-by-side runs overlap, so the phases of all runs add up to more than the
+    total wall time)."""
+    timing = run.get("timing", {})
+    parts = [f"{name} {timing[key]:.1f} s" for key, name in TIMING_PHASES if key in timing]
+    its = run.get("iteration_s", [])
+    if len(its) > 1:
+        parts.append(f"iteration 1 {its[0]:.2f} s, later ones {np.median(its[1:]):.2f} s median")
+    return ", ".join(parts)
+
+
 def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, results) -> None:
     """``summary.md``: robustness table against the paper, final-state MSE per iteration (mean
     over seeds), successes, timing."""
@@ -160,8 +180,7 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
         thr, thr2 = cfg.task.success_threshold, cfg.task.success_threshold_loose
         lines += [f"## Scenario {scenario}, algorithm {algorithm}", "",
                   f"{cfg.iterations} iterations, {cfg.num_samples} samples/condition, T = {cfg.task.T}; "
-                  f"wall time {run['wall_s']:.1f} s (first iteration incl. compilation "
-                  f"{run['first_iteration_s']:.1f} s).", ""]
+                  f"wall time {run['wall_s']:.1f} s ({format_timing(run)}).", ""]
         curves = dict(_curves(run))
         header = "| iteration | " + " | ".join(
             f"{_label(algorithm, c)} MSE mean (min–max)" for c in curves) + " | sample cost |"

@@ -379,6 +379,8 @@ class SStepConfig:
       obs_std_floor: floor of the input standard deviation in the normalisation (toolbox 1e-3).
       weight_median_floor: weights above this take part in the median of the weight rule (1e-2).
       weight_clip: weights are clipped at weight_clip × median before dividing by it (2).
+      unroll: minibatch steps per iteration of the compiled loop (speed only: the same steps in
+        the same order; unrolling lets a GPU queue several steps' kernels per loop turn).
     """
 
     lr: float = 1e-3
@@ -391,9 +393,10 @@ class SStepConfig:
     obs_std_floor: float = 1e-3
     weight_median_floor: float = 1e-2
     weight_clip: float = 2.0
+    unroll: int = 4
 
     def __post_init__(self):
-        for name in ("epochs", "batch_size"):
+        for name in ("epochs", "batch_size", "unroll"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"sstep.{name}={value!r}: must be a positive integer")

@@ -307,6 +307,12 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
     return jnp.concatenate([d.qpos, d.qvel]).astype(x.dtype)
 
 
+# Wrapped in ``jit`` so that its jaxpr is traced once per (plant, dtype) and the batched versions
+# are cached: tracing and batching MJX's step is most of the trace time of a training iteration,
+# which holds several rollouts (and CLI runs trace several iterations side by side).
+_mjx_step_jit = jax.jit(_mjx_step, static_argnums=0)
+
+
 class _HostStepper:
     """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``."""
 
@@ -367,7 +373,7 @@ def step_unclipped(s: Sim, x: Array, u: Array) -> Array:
     x = jnp.asarray(x)
     u = jnp.asarray(u, x.dtype)
     if s.backend == "mjx":
-        return _mjx_step(s, x, u)
+        return _mjx_step_jit(s, x, u)
     return _host_step(s, x, u)
 
 

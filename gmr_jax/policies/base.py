@@ -87,6 +87,9 @@ class SStepData(NamedTuple):
       K: [B, dU, dX] local controller gains K_p (used by GMR; zeros are fine for the MLP).
       k: [B, dU] local controller offsets k_p (GMR).
       state_cov: [B, dX, dX] state covariance Σ_t of the local controller's forward pass (GMR).
+      tgt_logdet: optional [B] log|tgt_prc| of the unweighted target precisions (0 on zero-weight
+        rows), a constant of the GMR loss; ``sstep`` fills it once per S-step so that no minibatch
+        step factorises a matrix (None: the loss computes it).
     """
 
     x: Array
@@ -96,6 +99,7 @@ class SStepData(NamedTuple):
     K: Array
     k: Array
     state_cov: Array
+    tgt_logdet: Array | None = None
 
 
 class Policy(NamedTuple):
@@ -152,6 +156,19 @@ def make_sstep_data(x, tgt_mu, tgt_prc, wt=None, K=None, k=None, state_cov=None)
         k=jnp.zeros((B, dU), dt) if k is None else jnp.asarray(k, dt),
         state_cov=jnp.zeros((B, dX, dX), dt) if state_cov is None else jnp.asarray(state_cov, dt),
     )
+
+
+def gaussian_logdet(P: Array) -> Array:
+    """log|P| of symmetric PD matrices [..., n, n] -> [...] (Cholesky; NaN if P is not PD)."""
+    chol = linalg.cholesky(P)
+    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
+
+
+def target_logdet(tgt_prc: Array, wt: Array) -> Array:
+    """``SStepData.tgt_logdet``: log|tgt_prc| [B] for rows with wt > 0, 0 for the others."""
+    valid = (wt > 0)[:, None, None]
+    eye = jnp.eye(tgt_prc.shape[-1], dtype=tgt_prc.dtype)
+    return gaussian_logdet(jnp.where(valid, tgt_prc, eye))
 
 
 def l2_penalty(tree: PyTree) -> Array:

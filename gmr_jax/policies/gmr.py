@@ -69,10 +69,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import linalg
 from gmr_jax.config import GMRConfig
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, default_float,
-                                   identity_normalization, normalize_input)
+                                   identity_normalization, normalize_input, target_logdet)
 from gmr_jax.policies.mlp import closed_form_variance
 
 
@@ -212,12 +211,6 @@ def cholesky_factor(r: Array, dU: int, init_var: float, std_range: float, offdia
     return L, 2.0 * jnp.sum(log_sigma - jnp.log(row_norm), axis=-1)
 
 
-def _gaussian_logdet(P: Array) -> Array:
-    """log|P| of symmetric PD matrices [..., n, n] -> [...] (Cholesky; NaN if P is not PD)."""
-    chol = linalg.cholesky(P)
-    return 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
-
-
 def linearize_mean(mean_fn, params: PolicyParams, x: Array):
     """Exact first-order expansion of a policy mean u(x) at x [dX] -> (K [dU, dX], k [dU]).
 
@@ -347,9 +340,12 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         # tr(wP L Lᵀ) and the constants of the Gaussian KL; log|P| of the unweighted precision
         # (identity on zero-weight rows, whose term is multiplied by w = 0 anyway).
         tr = jnp.einsum("bij,bjk,bik->b", P, L, L)
-        eye = jnp.eye(dU, dtype=P.dtype)
-        P_unw = jnp.where((w > 0)[:, None, None], P / jnp.where(w > 0, w, 1.0)[:, None, None], eye)
-        cov = 0.5 * jnp.mean(tr - w * (logdet + dU + _gaussian_logdet(P_unw)))
+        if batch.tgt_logdet is None:
+            P_unw = P / jnp.where(w > 0, w, 1.0)[:, None, None]
+            logdet_P = target_logdet(P_unw, w)
+        else:
+            logdet_P = batch.tgt_logdet
+        cov = 0.5 * jnp.mean(tr - w * (logdet + dU + logdet_P))
 
         value = recon + cfg.alpha * latent_kl + action_term + gain + cov
         aux = {"recon": recon, "latent_kl": latent_kl, "action": action_term, "gain": gain,
