@@ -9,9 +9,14 @@ the same result as an uninterrupted one). Writes into ``--out``: ``config.json``
 
 from __future__ import annotations
 
+import time
+
+_T_START = time.perf_counter()  # before the heavy imports: the command's total wall time
+
 import argparse
 import ast
 import concurrent.futures
+import contextlib
 import dataclasses
 import json
 import os
@@ -19,7 +24,6 @@ import pathlib
 import platform
 import sys
 import threading
-import time
 
 import jax
 import jax.numpy as jnp
@@ -174,35 +178,74 @@ class _Timer(dict):
 # Compiled iteration programs of this process, per (config, number of seeds): a resumed or
 # repeated run of the same configuration reuses its executable.
 _compiled: dict = {}
-_trace_lock = threading.Lock()
 
 
-def compile_iteration(cfg: config.Config, state, keys, timer: _Timer):
-    """The compiled ``step_fn`` for ``cfg`` and this seed batch (``state``: the batched
-    TrainState, arrays or ``ShapeDtypeStruct``s; ``keys``: [seeds] iteration keys), traced,
-    lowered and compiled ahead of time so that the three phases are timed separately (tracing
-    holds Python's GIL; XLA's compilation does not, so side-by-side runs overlap only there)."""
+class _TracingTurns:
+    """Side-by-side runs trace one at a time, in the order of their tickets.
+
+    Tracing and lowering are Python work under the GIL: concurrent traces only delay each other.
+    One at a time, the first run's compilation (which releases the GIL) starts sooner, and with
+    tickets the runs that train longest go first. ``ticket=None`` only excludes the others.
+    """
+
+    def __init__(self):
+        self._cv = threading.Condition()
+        self._next = 0
+        self._busy = False
+
+    def reset(self):
+        with self._cv:
+            self._next = 0
+
+    @contextlib.contextmanager
+    def __call__(self, ticket: int | None):
+        with self._cv:
+            self._cv.wait_for(lambda: not self._busy and (ticket is None or self._next == ticket))
+            self._busy = True
+        try:
+            yield
+        finally:
+            with self._cv:
+                self._busy = False
+                if ticket is not None:
+                    self._next += 1
+                self._cv.notify_all()
+
+
+_tracing = _TracingTurns()
+
+
+def lower_iteration(cfg: config.Config, state, keys, timer: _Timer):
+    """``step_fn`` for ``cfg`` and this seed batch, traced and lowered (``state``: the batched
+    TrainState, arrays or ``ShapeDtypeStruct``s; ``keys``: [seeds] iteration keys), or the
+    compiled program if this process has one already. The phases are timed separately."""
     key = (cfg, keys.shape[0])
-    if key not in _compiled:
-        # One run traces at a time: tracing is Python work under the GIL, so side-by-side traces
-        # only delay each other; serialised, the first run's compilation starts sooner.
-        with _trace_lock:
-            with timer("trace_s"):
-                traced = step_fn.trace(cfg, state, keys, jnp.asarray(True))
-            with timer("lower_s"):
-                lowered = traced.lower()
+    if key in _compiled:
+        return _compiled[key]
+    with timer("trace_s"):
+        traced = step_fn.trace(cfg, state, keys, jnp.asarray(True))
+    with timer("lower_s"):
+        return traced.lower()
+
+
+def compile_iteration(cfg: config.Config, state, keys, timer: _Timer, lowered=None):
+    """The compiled ``step_fn`` for ``cfg`` and this seed batch (see :func:`lower_iteration`;
+    ``lowered``: its result, if already at hand)."""
+    program = lower_iteration(cfg, state, keys, timer) if lowered is None else lowered
+    if isinstance(program, jax.stages.Lowered):
         with timer("compile_s"):
-            _compiled[key] = lowered.compile()
-    return _compiled[key]
+            program = _compiled[(cfg, keys.shape[0])] = program.compile()
+    return program
 
 
 def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume: bool,
-            stop_after: int | None = None, label: str = "") -> dict:
+            stop_after: int | None = None, label: str = "", ticket: int | None = None) -> dict:
     """Train ``cfg`` for ``seeds`` in parallel; checkpoint after every iteration.
 
     ``stop_after`` ends the loop after that many iterations (as an interruption would); a later
     call with ``resume=True`` continues from the checkpoint. ``label`` prefixes the progress
-    lines (runs may execute side by side).
+    lines (runs may execute side by side). ``ticket``: this run's place in the order in which
+    side-by-side runs trace their programs (0, 1, …; None: any order).
 
     Returns:
       dict with the stacked metrics history (leading axes [iteration, seed, ...]), ``wall_s``
@@ -222,20 +265,26 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
         with timer("init_s"):
             return jax.block_until_ready(init_fn(cfg, k_init))
     # The programs are compiled from the state's shapes while init compiles and runs beside them.
-    shapes = jax.eval_shape(lambda k: init_fn(cfg, k), k_init)
     state_future = _background.submit(initial_state)
     state, history, start = None, [], 0
-    if resume and checkpoint.latest(ckpt_dir) is not None:  # validated before anything compiles
-        state, saved = checkpoint.restore(ckpt_dir, state_future.result(), expect=report.jsonable(meta))
-        history = [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
-        start = len(history)
-        print(f"{label}  resumed from iteration {start}", flush=True)
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
-    if start < stop:
-        step = compile_iteration(cfg, shapes, it_keys[:, 0], timer)
-    robustness = None
-    if mdgps.uses_policy(cfg) and stop == cfg.iterations:
-        robustness = compile_robustness(cfg, shapes.policy, timer)
+    lowered_step = lowered_robustness = None
+    with _tracing(ticket):
+        if resume and checkpoint.latest(ckpt_dir) is not None:  # validated before compiling
+            state, saved = checkpoint.restore(ckpt_dir, state_future.result(),
+                                              expect=report.jsonable(meta))
+            history = [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
+            start = len(history)
+            print(f"{label}  resumed from iteration {start}", flush=True)
+        # The programs are built from the state's shapes while init compiles and runs beside them.
+        shapes = jax.eval_shape(lambda k: init_fn(cfg, k), k_init)
+        if start < stop:
+            lowered_step = lower_iteration(cfg, shapes, it_keys[:, 0], timer)
+        if mdgps.uses_policy(cfg) and stop == cfg.iterations:
+            lowered_robustness = lower_robustness(cfg, shapes.policy, timer)
+    robustness = None if lowered_robustness is None else compile_robustness(lowered_robustness, timer)
+    if lowered_step is not None:
+        step = compile_iteration(cfg, shapes, it_keys[:, 0], timer, lowered_step)
     if state is None:
         state = state_future.result()
     iteration_s = []
@@ -287,16 +336,18 @@ def _robustness_fn(cfg: config.Config):
     return jax.jit(jax.vmap(both))
 
 
-def compile_robustness(cfg: config.Config, params, timer: _Timer):
-    """Trace and lower the robustness program for ``params`` (arrays or ``ShapeDtypeStruct``s
-    with a leading seed axis) here, and compile it in a background thread: a run compiles it
-    while it trains. Returns a future of the compiled program."""
-    with _trace_lock:
-        with timer("robustness_trace_s"):
-            traced = _robustness_fn(cfg).trace(params)
-        with timer("robustness_lower_s"):
-            lowered = traced.lower()
+def lower_robustness(cfg: config.Config, params, timer: _Timer):
+    """The robustness program for ``params`` (arrays or ``ShapeDtypeStruct``s with a leading
+    seed axis), traced and lowered."""
+    with timer("robustness_trace_s"):
+        traced = _robustness_fn(cfg).trace(params)
+    with timer("robustness_lower_s"):
+        return traced.lower()
 
+
+def compile_robustness(lowered, timer: _Timer):
+    """Compile a lowered robustness program in a background thread (a run compiles it while it
+    trains); returns a future of the compiled program."""
     def compile_():
         with timer("robustness_compile_s"):
             return lowered.compile()
@@ -312,7 +363,10 @@ def evaluate_robustness(cfg: config.Config, params, timer: _Timer | None = None,
     states and the disturbance sweep. ``compiled``: a future from :func:`compile_robustness`
     (default: compile here)."""
     timer = _Timer() if timer is None else timer
-    compiled = compile_robustness(cfg, params, timer) if compiled is None else compiled
+    if compiled is None:
+        with _tracing(None):
+            lowered = lower_robustness(cfg, params, timer)
+        compiled = compile_robustness(lowered, timer)
     with timer("robustness_wait_s"):
         program = compiled.result()
     with timer("robustness_run_s"):
@@ -335,6 +389,8 @@ def main(argv=None) -> int:
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     device = f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}"
     print(f"gmr-jax reach study -> {out}  (device {device}, seeds {seeds})")
+    if not args.no_plots:
+        plotting = _background.submit(report.preload_plotting)
     configs = {(s, a): make_config(args, s, a) for s in args.scenarios for a in args.algorithms}
     (out / "config.json").write_text(json.dumps({
         "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
@@ -355,16 +411,22 @@ def main(argv=None) -> int:
         # start first: they trace first and reach the device first.
         order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr",
                                                -configs[k].task.num_conditions))
+        _tracing.reset()
         futures = {key: pool.submit(run_one, configs[key], seeds, out / f"{key[0]}_{key[1]}",
-                                    args.resume, label=f"[{key[0]}/{key[1]}]" if len(configs) > 1 else "")
-                   for key in order}
+                                    args.resume, label=f"[{key[0]}/{key[1]}]" if len(configs) > 1 else "",
+                                    ticket=i)
+                   for i, key in enumerate(order)}
         runs = {key: futures[key].result() for key in configs}
     total = time.perf_counter() - t_all
     results = report.write_results(out, configs, runs, seeds, device, total)
     if not args.no_plots:
+        plotting.result()
         report.plot_learning_curves(out / "learning_curves.png", configs, runs)
         report.plot_paths(out / "paths.png", configs, runs)
         report.plot_robustness(out / "robustness.png", configs, runs)
+    command_s = time.perf_counter() - _T_START
+    results["command_wall_s"] = command_s
+    (out / "results.json").write_text(json.dumps(results, indent=1))
     report.write_summary(out / "summary.md", configs, runs, seeds, device, total, results)
     print((out / "summary.md").read_text())
     return 0
