@@ -213,6 +213,11 @@ class _TracingTurns:
 
 
 _tracing = _TracingTurns()
+# Iteration programs compiled at once. XLA's GPU compiler spreads one compilation over the cores;
+# a dozen at once only slow each other down, so the runs that trace first (the longest) compile
+# first and start training sooner, and each run's robustness program compiles after its
+# iteration program.
+_compile_slots = threading.BoundedSemaphore(2)
 
 
 def lower_iteration(cfg: config.Config, state, keys, timer: _Timer):
@@ -233,7 +238,7 @@ def compile_iteration(cfg: config.Config, state, keys, timer: _Timer, lowered=No
     ``lowered``: its result, if already at hand)."""
     program = lower_iteration(cfg, state, keys, timer) if lowered is None else lowered
     if isinstance(program, jax.stages.Lowered):
-        with timer("compile_s"):
+        with _compile_slots, timer("compile_s"):
             program = _compiled[(cfg, keys.shape[0])] = program.compile()
     return program
 
@@ -282,9 +287,9 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
             lowered_step = lower_iteration(cfg, shapes, it_keys[:, 0], timer)
         if mdgps.uses_policy(cfg) and stop == cfg.iterations:
             lowered_robustness = lower_robustness(cfg, shapes.policy, timer)
-    robustness = None if lowered_robustness is None else compile_robustness(lowered_robustness, timer)
     if lowered_step is not None:
         step = compile_iteration(cfg, shapes, it_keys[:, 0], timer, lowered_step)
+    robustness = None if lowered_robustness is None else compile_robustness(lowered_robustness, timer)
     if state is None:
         state = state_future.result()
     iteration_s = []

@@ -362,6 +362,49 @@ class _HostStepper:
         return x1.reshape(lead + (2 * nq,)).astype(x.dtype, copy=False)
 
 
+    def rollout(self, x0, K, k, chol, eps, limit):
+        """A whole linear-Gaussian rollout on the host (one callback instead of one per step).
+
+        x0 [..., dX]; K [..., T, dU, dX]; k [..., T, dU]; chol [..., T, dU, dU]; eps [..., T, dU];
+        limit [dU] or None. Returns (X [..., T, dX], U [..., T, dU], x_T [..., dX]) in x0's
+        dtype, with the semantics of ``rollout_with_final``: u_t = clip(K_t x_t + k_t + chol_tᵀ
+        ε_t), the state rounded to x0's dtype after every step as the step callback does.
+        """
+        dtype = x0.dtype
+        lead, (T, dU) = x0.shape[:-1], eps.shape[-2:]
+        dX = x0.shape[-1]
+        flat = lambda a, tail: np.asarray(a, np.float64).reshape((-1,) + tail)  # noqa: E731
+        x = flat(x0, (dX,))
+        K, k, chol, eps = flat(K, (T, dU, dX)), flat(k, (T, dU)), flat(chol, (T, dU, dU)), flat(eps, (T, dU))
+        X = np.empty((x.shape[0], T, dX))
+        U = np.empty((x.shape[0], T, dU))
+        for t in range(T):
+            X[:, t] = x
+            u = (np.einsum("bij,bj->bi", K[:, t], x) + k[:, t]
+                 + np.einsum("bji,bj->bi", chol[:, t], eps[:, t])).astype(dtype).astype(np.float64)
+            if limit is not None:
+                u = np.clip(u, -limit, limit)
+            U[:, t] = u
+            x = self(x.astype(dtype), u.astype(dtype)).astype(np.float64)
+        return (X.reshape(lead + (T, dX)).astype(dtype), U.reshape(lead + (T, dU)).astype(dtype),
+                x.reshape(lead + (dX,)).astype(dtype))
+
+
+def _host_rollout(s: Sim, policy: types.LinearGaussianPolicy, x0: Array, eps: Array):
+    """``rollout_with_final``'s (X, U, x_T) of a linear-Gaussian controller on the C MuJoCo
+    backend, as one host callback for the whole horizon (the per-step callbacks of a policy
+    rollout each stop the device stream; here the controller is known in advance)."""
+    T, dU = eps.shape
+    dtype = x0.dtype
+    limit = np.asarray(s.torque_limit, np.float64) if s.config.clip_torques else None
+    out = (jax.ShapeDtypeStruct((T, x0.shape[-1]), dtype), jax.ShapeDtypeStruct((T, dU), dtype),
+           jax.ShapeDtypeStruct(x0.shape, dtype))
+    return jax.pure_callback(
+        lambda *a: s._host().rollout(*a, limit=limit), out, x0, policy.K.astype(dtype),
+        policy.k.astype(dtype), policy.chol_pol_covar.astype(dtype), eps.astype(dtype),
+        vmap_method="broadcast_all")
+
+
 def _host_step(s: Sim, x: Array, u: Array) -> Array:
     stepper = s._host()
     return jax.pure_callback(stepper, jax.ShapeDtypeStruct(x.shape, x.dtype), x, u.astype(x.dtype),
@@ -435,6 +478,11 @@ def rollout_with_final(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: b
             return policy(t, x, e)
     else:
         raise TypeError(f"policy must be a LinearGaussianPolicy or a callable, got {type(policy)}")
+
+    if s.backend == "mujoco" and isinstance(policy, types.LinearGaussianPolicy):
+        X, U, xT = _host_rollout(s, policy, x0, eps)
+        ee = jax.vmap(functools.partial(end_effector, s))(X[:, : s.nq]) if with_ee else None
+        return types.Trajectories(X=X, U=U, ee=ee), xT
 
     def body(x, inp):
         t, e, p = inp
