@@ -326,6 +326,12 @@ def test_loss_terms_against_direct_computation():
                 + terms["gain"].mean() + terms["cov"].mean())
     np.testing.assert_allclose(value, expected, rtol=1e-9)
     assert aux["cov"] >= 0 and aux["latent_kl"] >= 0
+    # the S-step's precomputed log|P| (SStepData.tgt_logdet) gives the same loss
+    from gmr_jax.policies.base import target_logdet
+    pre = data._replace(tgt_logdet=target_logdet(jnp.asarray(P), jnp.asarray(w)))
+    v_pre, aux_pre = F.loss(params, pre, key)
+    np.testing.assert_allclose(v_pre, value, rtol=1e-12)
+    np.testing.assert_allclose(aux_pre["cov"], aux["cov"], rtol=1e-12)
     # α scales only the latent term
     v2, _ = _fns(dataclasses.replace(CFG, alpha=0.25)).loss(params, data, key)
     np.testing.assert_allclose(value - v2, 0.75 * aux["latent_kl"], rtol=1e-9)

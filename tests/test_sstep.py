@@ -165,6 +165,20 @@ def test_jit_equals_nojit_and_vmap_equals_loop(policy):
     assert not np.allclose(w0[0], w0[1])
 
 
+def test_unrolled_loop_takes_the_same_steps(policy):
+    """``SStepConfig.unroll`` only changes how the loop is compiled: the same minibatch steps in
+    the same order (B = 100 rows: 5 minibatches per epoch, so unroll 3 also leaves a remainder)."""
+    data, _ = _teacher(5)
+    params = policy.init(jax.random.key(1), dX, dU)
+    ref, ref_m = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=1))
+    for unroll in (3, 5):
+        got, got_m = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=unroll))
+        for a, b in zip(jax.tree_util.tree_leaves((ref, ref_m)), jax.tree_util.tree_leaves((got, got_m))):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="sstep.unroll"):
+        SStepConfig(unroll=0)
+
+
 def test_float32_follows_input_dtype(policy):
     data, _ = _teacher(4)
     data32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), data)
