@@ -380,7 +380,8 @@ class SStepConfig:
       weight_median_floor: weights above this take part in the median of the weight rule (1e-2).
       weight_clip: weights are clipped at weight_clip × median before dividing by it (2).
       unroll: minibatch steps per iteration of the compiled loop (speed only: the same steps in
-        the same order; unrolling lets a GPU queue several steps' kernels per loop turn).
+        the same order). None: 4 on a GPU, where it saves about 8 % per step
+        (benchmarks/RESULTS.md), and 1 elsewhere, where it only lengthens compilation.
     """
 
     lr: float = 1e-3
@@ -393,11 +394,13 @@ class SStepConfig:
     obs_std_floor: float = 1e-3
     weight_median_floor: float = 1e-2
     weight_clip: float = 2.0
-    unroll: int = 4
+    unroll: int | None = None
 
     def __post_init__(self):
         for name in ("epochs", "batch_size", "unroll"):
             value = getattr(self, name)
+            if name == "unroll" and value is None:
+                continue
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"sstep.{name}={value!r}: must be a positive integer")
         for name in ("lr", "eps", "obs_std_floor", "weight_clip"):

@@ -123,6 +123,7 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
     train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn, tgt_logdet=logdet)
 
     opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
+    unroll = cfg.unroll if cfg.unroll is not None else (4 if jax.default_backend() == "gpu" else 1)
 
     # The optimiser works on one flat parameter vector: Adam's update and the L2 term are then
     # one fused kernel each instead of one per weight matrix (a GPU step is launch-bound).
@@ -146,7 +147,7 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
         k_perm, k_loss = jax.random.split(k)
         idx = jax.random.permutation(k_perm, B)[: nb * bs].reshape(nb, bs)
         carry, (total, value, aux) = lax.scan(batch_step, carry, (idx, jax.random.split(k_loss, nb)),
-                                              unroll=min(cfg.unroll, nb))
+                                              unroll=min(unroll, nb))
         means = jax.tree_util.tree_map(lambda a: jnp.mean(a, axis=0), (total, value, aux))
         return carry, means
 
