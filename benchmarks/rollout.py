@@ -25,7 +25,6 @@ effect are recorded in the JSON.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import json
 import os

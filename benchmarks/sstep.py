@@ -14,7 +14,6 @@ covariances) with the shapes of the real ones: the time of a step does not depen
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform

@@ -17,7 +17,6 @@ import argparse
 import ast
 import concurrent.futures
 import contextlib
-import dataclasses
 import json
 import os
 import pathlib

@@ -1,6 +1,5 @@
 """Tests of gmr_jax.lqr against closed forms, independent numpy recursions and Monte Carlo."""
 
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -9,7 +8,7 @@ import pytest
 
 from gmr_jax import lqr
 from gmr_jax.config import InitLQRConfig, LQRConfig, StepConfig
-from gmr_jax.types import Dynamics, LinearGaussianPolicy, Marginals, QuadraticCost
+from gmr_jax.types import Dynamics, QuadraticCost
 
 CFG = LQRConfig()
 T, DX, DU = 8, 4, 2

@@ -4,7 +4,6 @@ Short horizons and tiny S-steps keep the compile and run times within the CPU bu
 configurations are shared by several tests so each function compiles once per process.
 """
 
-import dataclasses
 import pathlib
 
 import jax
@@ -12,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gmr_jax import checkpoint, config, mdgps
+from gmr_jax import config, mdgps
 
 
 def small(algorithm: str, **overrides) -> config.Config:

@@ -16,7 +16,6 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 
 from gmr_jax.config import MLPConfig
