@@ -268,7 +268,6 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
     def initial_state():
         with timer("init_s"):
             return jax.block_until_ready(init_fn(cfg, k_init))
-    # The programs are compiled from the state's shapes while init compiles and runs beside them.
     state_future = _background.submit(initial_state)
     state, history, start = None, [], 0
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
@@ -422,15 +421,13 @@ def main(argv=None) -> int:
                    for i, key in enumerate(order)}
         runs = {key: futures[key].result() for key in configs}
     total = time.perf_counter() - t_all
-    results = report.write_results(out, configs, runs, seeds, device, total)
     if not args.no_plots:
         plotting.result()
         report.plot_learning_curves(out / "learning_curves.png", configs, runs)
         report.plot_paths(out / "paths.png", configs, runs)
         report.plot_robustness(out / "robustness.png", configs, runs)
-    command_s = time.perf_counter() - _T_START
-    results["command_wall_s"] = command_s
-    (out / "results.json").write_text(json.dumps(results, indent=1))
+    results = report.write_results(out, configs, runs, seeds, device, total,
+                                   command_s=time.perf_counter() - _T_START)
     report.write_summary(out / "summary.md", configs, runs, seeds, device, total, results)
     print((out / "summary.md").read_text())
     return 0

@@ -33,7 +33,8 @@ def _label(algorithm: str, curve: str) -> str:
     return algorithm.upper()
 
 
-def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s) -> dict:
+def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
+                  command_s: float | None = None) -> dict:
     """Write ``results.json``: per run (scenario, algorithm, seed) the per-iteration metrics.
 
     Scalars per condition are averaged over conditions (the learning-curve convention), and the
@@ -69,6 +70,7 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s) -> d
                     "success_rate_loose": jsonable(run["sweep"]["success_rate_loose"][i])}
             records.append(rec)
     results = {"device": device, "seeds": list(seeds), "total_wall_s": total_s,
+               **({} if command_s is None else {"command_wall_s": command_s}),
                "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], **r.get("timing", {}),
                                        "iteration_s": list(r.get("iteration_s", []))}
                           for (s, a), r in runs.items()},

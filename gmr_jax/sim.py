@@ -361,7 +361,6 @@ class _HostStepper:
         x1[bad] = np.nan
         return x1.reshape(lead + (2 * nq,)).astype(x.dtype, copy=False)
 
-
     def rollout(self, x0, K, k, chol, eps, limit):
         """A whole linear-Gaussian rollout on the host (one callback instead of one per step).
 
@@ -465,6 +464,10 @@ def rollout_with_final(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: b
         x0 = x0.astype(jnp.result_type(float))
     eps = jnp.asarray(eps)
     T = eps.shape[0]
+    if s.backend == "mujoco" and isinstance(policy, types.LinearGaussianPolicy):
+        X, U, xT = _host_rollout(s, policy, x0, eps)
+        ee = jax.vmap(functools.partial(end_effector, s))(X[:, : s.nq]) if with_ee else None
+        return types.Trajectories(X=X, U=U, ee=ee), xT
     if isinstance(policy, types.LinearGaussianPolicy):
         # scan over the per-step slices rather than indexing with a traced t
         pol_xs = types.LinearGaussianPolicy(policy.K, policy.k, None, policy.chol_pol_covar, None)
@@ -478,11 +481,6 @@ def rollout_with_final(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: b
             return policy(t, x, e)
     else:
         raise TypeError(f"policy must be a LinearGaussianPolicy or a callable, got {type(policy)}")
-
-    if s.backend == "mujoco" and isinstance(policy, types.LinearGaussianPolicy):
-        X, U, xT = _host_rollout(s, policy, x0, eps)
-        ee = jax.vmap(functools.partial(end_effector, s))(X[:, : s.nq]) if with_ee else None
-        return types.Trajectories(X=X, U=U, ee=ee), xT
 
     def body(x, inp):
         t, e, p = inp

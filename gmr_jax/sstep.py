@@ -24,7 +24,8 @@ from jax.flatten_util import ravel_pytree
 from jax import lax
 
 from gmr_jax.config import SStepConfig
-from gmr_jax.policies.base import Normalization, Policy, PolicyParams, SStepData, target_logdet
+from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, l2_penalty,
+                                   target_logdet)
 
 
 def set_normalization(params: PolicyParams, x, weights=None, std_floor: float = 1e-3) -> PolicyParams:
@@ -131,7 +132,7 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
 
     def objective(flat, batch, k):
         value, aux = policy.loss(params._replace(net=unravel(flat)), batch, k)
-        return value + cfg.weight_decay * jnp.sum(jnp.square(flat)), (value, aux)
+        return value + cfg.weight_decay * l2_penalty(flat), (value, aux)
 
     grad_fn = jax.value_and_grad(objective, has_aux=True)
 
