@@ -39,6 +39,8 @@ SWEEP_PER_RADIUS = 10
 # 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
 # 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
 MJX_MIN_ROLLOUTS = 32
+# Iteration programs compiled at once (--compile-jobs).
+DEFAULT_COMPILE_JOBS = 2
 DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
 
@@ -72,6 +74,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--jobs", type=int, default=0,
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
+    p.add_argument("--compile-jobs", type=int, default=DEFAULT_COMPILE_JOBS,
+                   help="iteration programs compiled at once (default: %(default)s). XLA spreads "
+                        "one compilation over the cores, so more at once mostly slow each other")
     p.add_argument("--autotune", action="store_true",
                    help="let XLA time kernel variants on the GPU while compiling. Off by default: "
                         "runs that compile while others train make those timings slow and noisy, "
@@ -102,6 +107,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     for s in args.scenarios:
         if s not in config.SCENARIOS:
             p.error(f"--scenario {s!r}: allowed values are {tuple(config.SCENARIOS)}")
+    if args.compile_jobs < 1:
+        p.error(f"--compile-jobs must be a positive integer, got {args.compile_jobs}")
     if args.jobs < 0:
         p.error(f"--jobs must be ≥ 0 (0: automatic), got {args.jobs}")
     for name in ("iterations", "samples", "seeds", "T"):
@@ -216,7 +223,13 @@ _tracing = _TracingTurns()
 # a dozen at once only slow each other down, so the runs that trace first (the longest) compile
 # first and start training sooner, and each run's robustness program compiles after its
 # iteration program.
-_compile_slots = threading.BoundedSemaphore(2)
+_compile_slots = threading.BoundedSemaphore(DEFAULT_COMPILE_JOBS)
+
+
+def set_compile_jobs(n: int) -> None:
+    """Let ``n`` iteration programs compile at once (``--compile-jobs``)."""
+    global _compile_slots
+    _compile_slots = threading.BoundedSemaphore(n)
 
 
 def lower_iteration(cfg: config.Config, state, keys, timer: _Timer):
@@ -304,6 +317,8 @@ def run_one(cfg: config.Config, seeds: list[int], run_dir: pathlib.Path, resume:
     try:
         for it in range(start, stop):
             t_it = time.perf_counter()
+            if it == start:  # the run's start-up (waits for its turns and slots included)
+                timer["training_start_s"] = t_it - t0
             new_state, metrics = step(state, it_keys[:, it], jnp.asarray(it == 0))
             if pending is not None:
                 save(*pending)
@@ -398,7 +413,7 @@ def main(argv=None) -> int:
     (out / "config.json").write_text(json.dumps({
         "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
-        "compilation_cache": args.compilation_cache, "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(), "jax": jax.__version__,
+        "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs, "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(), "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in configs.items()}}, indent=2))
     jobs = args.jobs or len(configs)
     for (scenario, algorithm), cfg in configs.items():
@@ -406,6 +421,7 @@ def main(argv=None) -> int:
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
     if jobs > 1:
         print(f"{min(jobs, len(configs))} runs side by side", flush=True)
+    set_compile_jobs(args.compile_jobs)
     t_all = time.perf_counter()
     # Side by side, the runs' XLA compilations (most of a short GPU run) use several CPU cores and
     # their iterations interleave on the device; progress lines carry the run's name.

@@ -161,7 +161,8 @@ def plot_paths(path: pathlib.Path, configs, runs) -> None:
 
 
 TIMING_PHASES = (("init_s", "init"), ("trace_s", "trace"), ("lower_s", "lower"),
-                 ("compile_s", "compile"), ("iterations_s", "iterations"),
+                 ("compile_s", "compile"), ("training_start_s", "first iteration from"),
+                 ("iterations_s", "iterations"),
                  ("checkpoint_s", "checkpoints"), ("robustness_trace_s", "robustness trace"),
                  ("robustness_lower_s", "lower"), ("robustness_compile_s", "compile (beside training)"),
                  ("robustness_wait_s", "waited for"), ("robustness_run_s", "run"))

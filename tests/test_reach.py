@@ -12,6 +12,7 @@ def test_bad_arguments_are_named():
     for argv, needle in ((["--scenario", "C"], "--scenario 'C'"), (["--algorithm", "ppo"], "--algorithm 'ppo'"),
                          (["--seeds", "0"], "--seeds must be a positive integer"),
                          (["--samples", "1"], "at least 2"), (["--jobs", "-1"], "--jobs"),
+                         (["--compile-jobs", "0"], "--compile-jobs"),
                          (["--set", "novalue"], "GROUP__FIELD=VALUE")):
         with pytest.raises(SystemExit):
             reach.parse_args(argv)
