@@ -39,8 +39,9 @@ SWEEP_PER_RADIUS = 10
 # 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
 # 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
 MJX_MIN_ROLLOUTS = 32
-# Iteration programs compiled at once (--compile-jobs).
-DEFAULT_COMPILE_JOBS = 2
+# Iteration programs compiled at once (--compile-jobs): all four of the default run (measured
+# against 2 in benchmarks/RESULTS.md).
+DEFAULT_COMPILE_JOBS = 4
 DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
 
@@ -219,10 +220,9 @@ class _TracingTurns:
 
 
 _tracing = _TracingTurns()
-# Iteration programs compiled at once. XLA's GPU compiler spreads one compilation over the cores;
-# a dozen at once only slow each other down, so the runs that trace first (the longest) compile
-# first and start training sooner, and each run's robustness program compiles after its
-# iteration program.
+# Iteration programs compiled at once. XLA's GPU compiler spreads one compilation over the cores,
+# so a dozen at once only slow each other down; the runs that trace first (the longest) compile
+# first, and each run's robustness program compiles after its iteration program.
 _compile_slots = threading.BoundedSemaphore(DEFAULT_COMPILE_JOBS)
 
 

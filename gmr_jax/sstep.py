@@ -124,7 +124,6 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
     train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn, tgt_logdet=logdet)
 
     opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
-    unroll = cfg.unroll if cfg.unroll is not None else (4 if jax.default_backend() == "gpu" else 1)
 
     # The optimiser works on one flat parameter vector: Adam's update and the L2 term are then
     # one fused kernel each instead of one per weight matrix (a GPU step is launch-bound).
@@ -136,20 +135,25 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
 
     grad_fn = jax.value_and_grad(objective, has_aux=True)
 
+    stats_def = []  # the tree structure of (total, value, aux), recorded while tracing
+
     def batch_step(carry, inputs):
         net, opt_state = carry
         idx, k = inputs
         batch = jax.tree_util.tree_map(lambda a: a[idx], train)
         (total, (value, aux)), grads = grad_fn(net, batch, k)
         updates, opt_state = opt.update(grads, opt_state, net)
-        return (optax.apply_updates(net, updates), opt_state), (total, value, aux)
+        # The step's scalars leave the loop as one vector: one write per step, not one per scalar.
+        stats, treedef = jax.tree_util.tree_flatten((total, value, aux))
+        stats_def.append(treedef)
+        return (optax.apply_updates(net, updates), opt_state), jnp.stack(stats)
 
     def epoch(carry, k):
         k_perm, k_loss = jax.random.split(k)
         idx = jax.random.permutation(k_perm, B)[: nb * bs].reshape(nb, bs)
-        carry, (total, value, aux) = lax.scan(batch_step, carry, (idx, jax.random.split(k_loss, nb)),
-                                              unroll=min(unroll, nb))
-        means = jax.tree_util.tree_map(lambda a: jnp.mean(a, axis=0), (total, value, aux))
+        carry, stats = lax.scan(batch_step, carry, (idx, jax.random.split(k_loss, nb)),
+                                unroll=min(cfg.unroll, nb))
+        means = jax.tree_util.tree_unflatten(stats_def[-1], list(jnp.mean(stats, axis=0)))
         return carry, means
 
     # Fresh optimiser state at every S-step (the authors' practice); parameters are warm-started.
