@@ -39,8 +39,9 @@ SWEEP_PER_RADIUS = 10
 # 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
 # 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
 MJX_MIN_ROLLOUTS = 32
-# Iteration programs compiled at once (--compile-jobs): all four of the default run (measured
-# against 2 in benchmarks/RESULTS.md).
+# Iteration programs compiled at once (--compile-jobs): all four of the default run. On an H100
+# the cold default run took 96 and 98 s with 4, 98 s with 2 (benchmarks/RESULTS.md); with 4 every
+# run starts training by about 35 s.
 DEFAULT_COMPILE_JOBS = 4
 DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
