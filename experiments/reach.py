@@ -394,6 +394,11 @@ def evaluate_robustness(cfg: config.Config, params, timer: _Timer | None = None,
             "success_rate": np.asarray(rate), "success_rate_loose": np.asarray(rate_loose)}}
 
 
+def run_folder(out: pathlib.Path, scenario: str, algorithm: str) -> pathlib.Path:
+    """The folder of one run (its checkpoints) inside ``--out``."""
+    return out / f"{scenario}_{algorithm}"
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     flags = os.environ.get("XLA_FLAGS", "")
@@ -404,13 +409,22 @@ def main(argv=None) -> int:
     if args.compilation_cache != "none":
         jax.config.update("jax_compilation_cache_dir", args.compilation_cache)
     out = pathlib.Path(args.out)
+    configs = {(s, a): make_config(args, s, a) for s in args.scenarios for a in args.algorithms}
+    if not args.resume:
+        # Checked before anything is written or compiled: a fresh run never replaces a run's files.
+        taken = [str(run_folder(out, *key) / "checkpoints") for key in configs
+                 if checkpoint.latest(run_folder(out, *key) / "checkpoints") is not None]
+        if taken:
+            print(f"python -m experiments.reach: error: --out {out} already holds checkpoints "
+                  f"({', '.join(taken)}); pass --resume to continue those runs, or choose another "
+                  "--out", file=sys.stderr)
+            return 2
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     device = f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}"
     print(f"gmr-jax reach study -> {out}  (device {device}, seeds {seeds})")
     if not args.no_plots:
         plotting = _background.submit(report.preload_plotting)
-    configs = {(s, a): make_config(args, s, a) for s in args.scenarios for a in args.algorithms}
     (out / "config.json").write_text(json.dumps({
         "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
@@ -432,7 +446,7 @@ def main(argv=None) -> int:
         order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr",
                                                -configs[k].task.num_conditions))
         _tracing.reset()
-        futures = {key: pool.submit(run_one, configs[key], seeds, out / f"{key[0]}_{key[1]}",
+        futures = {key: pool.submit(run_one, configs[key], seeds, run_folder(out, *key),
                                     args.resume, label=f"[{key[0]}/{key[1]}]" if len(configs) > 1 else "",
                                     ticket=i)
                    for i, key in enumerate(order)}

@@ -3,9 +3,11 @@
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from experiments import reach
+from gmr_jax import checkpoint
 
 
 def test_bad_arguments_are_named():
@@ -57,3 +59,16 @@ def test_tracing_turns_follow_the_tickets():
             raise RuntimeError("trace failed")
     with turns(1):
         pass
+
+
+def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
+    """Without --resume, an --out that holds a run's checkpoints is refused before anything is
+    written: the earlier run's config.json and checkpoints stay as they were."""
+    ckpt = reach.run_folder(tmp_path, "A", "lqr") / "checkpoints"
+    checkpoint.save(ckpt, {"x": np.zeros(2)}, step=1)
+    (tmp_path / "config.json").write_text("earlier run")
+    assert reach.main(["--out", str(tmp_path), "--scenario", "A", "--algorithm", "lqr"]) == 2
+    err = capsys.readouterr().err
+    assert "already holds checkpoints" in err and str(ckpt) in err and "--resume" in err
+    assert (tmp_path / "config.json").read_text() == "earlier run"
+    assert checkpoint.latest(ckpt) == 1
