@@ -39,10 +39,10 @@ SWEEP_PER_RADIUS = 10
 # 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
 # 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
 MJX_MIN_ROLLOUTS = 32
-# Iteration programs compiled at once (--compile-jobs): all four of the default run. On an H100
-# the cold default run took 96 and 98 s with 4, 98 s with 2 (benchmarks/RESULTS.md); with 4 every
-# run starts training by about 35 s.
-DEFAULT_COMPILE_JOBS = 4
+# Iteration programs compiled at once (--compile-jobs). The default run (4 programs) took 97.7 s
+# with 2 and 96.3/98.3 s with 4 on an H100 (cold), and 312 s with 2 against 331 s with 4 on the
+# 2-core CPU (benchmarks/RESULTS.md).
+DEFAULT_COMPILE_JOBS = 2
 DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
 
