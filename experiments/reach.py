@@ -428,7 +428,9 @@ def main(argv=None) -> int:
     (out / "config.json").write_text(json.dumps({
         "command": " ".join(["python -m experiments.reach"] + list(sys.argv[1:] if argv is None else argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
-        "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs, "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(), "jax": jax.__version__,
+        "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(),
+        "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in configs.items()}}, indent=2))
     jobs = args.jobs or len(configs)
     for (scenario, algorithm), cfg in configs.items():

@@ -109,8 +109,6 @@ def np_logpdf(u, mean, S):
 def np_toolbox_kl(mu, sigma, new, prev):
     """The toolbox's traj_distr_kl form: E[log p_new − log p_prev] via M, v, c (no clipping)."""
     T, D = mu.shape
-    dU = np.asarray(new.k).shape[-1]
-    dX = D - dU
     out = np.zeros(T)
     for t in range(T):
         terms = []
