@@ -23,14 +23,15 @@ import time
 import jax
 import jax.numpy as jnp
 
-from gmr_jax import config, mdgps, policies, sstep
+from gmr_jax import config, mdgps, policies, sstep, tasks
 
 
 def synthetic_data(cfg: config.Config, key, dtype) -> policies.SStepData:
     """An S-step data set with the reach study's shapes for ``cfg`` (values are arbitrary)."""
     M, N, T = cfg.task.num_conditions, cfg.num_samples, cfg.task.T
     B = M * (N + (cfg.algorithm == "gmr")) * T
-    dX, dU = 12, 6
+    dX = tasks.initial_states(cfg.task).shape[-1]
+    dU = dX // 2  # one torque per joint; the state is (joint angles, joint velocities)
     kx, kK, kk, kp, ks = jax.random.split(key, 5)
     x = jax.random.normal(kx, (B, dX), dtype)
     K = 0.1 * jax.random.normal(kK, (B, dU, dX), dtype)
