@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmr_jax import config, noise, sim, types
+from gmr_jax.tasks import reach as reach_task
 
 DEFAULT_BATCHES = "1,8,64,512,2048,8192,16384,32768"
 
@@ -72,7 +73,7 @@ def make_inputs(s: sim.Sim, B: int, T: int, dtype, seed: int = 0):
     """A batch of LG controllers (PD towards the reach target plus random gains), initial states
     near condition A and smoothed noise; all on the device."""
     rng = np.random.default_rng(seed)
-    tgt = np.array(config.REACH_TARGET)
+    tgt = np.array(reach_task.TARGET)
     kp = np.array([20, 20, 10, 3, 3, 0.5])
     kd = np.array([8, 5, 3, 1, 1, 0.1])
     K0 = np.concatenate([-np.diag(kp), -np.diag(kd)], axis=1)
@@ -80,7 +81,7 @@ def make_inputs(s: sim.Sim, B: int, T: int, dtype, seed: int = 0):
     k = np.broadcast_to(kp * tgt, (B, T, s.dU))
     chol = np.broadcast_to(np.eye(s.dU) * 0.5, (B, T, s.dU, s.dU))
     pol = types.LinearGaussianPolicy(*(jnp.asarray(a, dtype) for a in (K, k, chol @ chol, chol, np.linalg.inv(chol @ chol))))
-    x0 = np.concatenate([np.array(config.REACH_INITIAL_A) + 0.05 * rng.normal(size=(B, 6)), np.zeros((B, 6))], axis=1)
+    x0 = np.concatenate([np.array(reach_task.INITIAL["A"]) + 0.05 * rng.normal(size=(B, 6)), np.zeros((B, 6))], axis=1)
     keys = jax.random.split(jax.random.key(seed), B)
     eps = jax.jit(jax.vmap(lambda kk: noise.smooth_noise(kk, T, s.dU, config.NoiseConfig(), dtype=dtype)))(keys)
     return pol, jnp.asarray(x0, dtype), eps

@@ -73,9 +73,9 @@ def main(argv=None) -> int:
             for unroll in [int(u) for u in args.unroll.split(",")]:
                 cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs,
                                    sstep__unroll=unroll)
-                params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy
+                params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
                 data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
-                pol = mdgps.make_global_policy(cfg)
+                pol = policies.for_config(cfg)
                 fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep))
                 t0 = time.perf_counter()
                 compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()

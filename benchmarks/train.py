@@ -22,14 +22,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import config, mdgps
+from gmr_jax import config, mdgps, policies
+from gmr_jax.tasks import reach as reach_task
 
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(prog="python -m benchmarks.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--algorithm", default="mdgps", choices=config.ALGORITHMS)
-    p.add_argument("--scenario", default="AB", choices=tuple(config.SCENARIOS))
+    p.add_argument("--algorithm", default="mdgps", choices=tuple(policies.ALGORITHMS))
+    p.add_argument("--scenario", default="AB", choices=tuple(reach_task.SCENARIOS))
     p.add_argument("--seeds", default="1,8,64,256", help="comma-separated seed counts")
     p.add_argument("--iterations", type=int, default=config.Config.iterations)
     p.add_argument("--samples", type=int, default=config.Config.num_samples)

@@ -1,6 +1,6 @@
 """Why does a trained policy fail from some robustness states? ``python -m experiments.diagnose OUT``.
 
-Reads a folder written by ``python -m experiments.reach`` (its ``config.json`` and the final
+Reads a folder written by a study (``python -m experiments.reach``; its ``config.json`` and the final
 checkpoint of every policy run), executes each seed's policy noiselessly from the 50 fixed
 robustness states, and reports per seed, separately for the successful and the failed states:
 
@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import checkpoint, config, evaluate, mdgps, tasks
+from gmr_jax import checkpoint, config, evaluate, policies, runner, tasks
 from gmr_jax import sim as sim_lib
 from gmr_jax.policies.base import normalize_input
 
@@ -52,11 +52,11 @@ def diagnose_seed(cfg: config.Config, params) -> dict:
     x0 = evaluate.robustness_states(cfg, dtype=dtype)
     traj = evaluate.execute_policy(cfg, params, x0)
     rob = evaluate.summarize_robustness(cfg, x0, traj)
-    mean_fn = mdgps.policy_mean_fn(cfg, params)
+    policy = policies.for_config(cfg)
+    mean_fn = policies.mean_fn(policy, params)
     limit = jnp.asarray(s.torque_limit, dtype)
     sat = jnp.mean(jnp.any(jnp.abs(traj.U) >= limit * (1 - 1e-9), axis=-1), axis=-1)
     xin0 = jnp.max(jnp.abs(normalize_input(params.norm, x0)), axis=-1)
-    policy = mdgps.make_global_policy(cfg)
     jac = jax.vmap(jax.vmap(jax.jacfwd(lambda x: policy.mean(params, x))))(traj.X)  # [S, T, dU, dX]
     gain = jnp.mean(jnp.sqrt(jnp.sum(jac ** 2, axis=(-2, -1))), axis=-1)
     target = tasks.target_state(cfg.task, dtype)
@@ -76,16 +76,10 @@ def _split(values, ok):
     return f"{med(values[ok])} / {med(values[~ok])}"
 
 
-def diagnose_run(out: pathlib.Path, name: str, cfg: config.Config, seeds: list[int]) -> tuple[list[dict], str]:
-    from experiments import reach  # the same jitted init as the run, for the checkpoint template
-
-    run_dir = out / name.replace("/", "_")
-    ckpt = run_dir / "checkpoints"
-    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    k_init, _ = jax.vmap(lambda k: mdgps.iteration_keys(k, cfg.iterations))(keys)
-    state, _ = checkpoint.restore(ckpt, reach.init_fn(cfg, k_init))
+def diagnose_run(ckpt: pathlib.Path, name: str, cfg: config.Config, seeds: list[int]) -> tuple[list[dict], str]:
+    state, _ = checkpoint.restore(ckpt, runner.initial_state(cfg, seeds))
     rows, out_rows = [], []
-    every = jax.tree_util.tree_map(np.asarray, jax.jit(jax.vmap(lambda p: diagnose_seed(cfg, p)))(state.policy))
+    every = jax.tree_util.tree_map(np.asarray, jax.jit(jax.vmap(lambda p: diagnose_seed(cfg, p)))(state.policy.params))
     for i, seed in enumerate(seeds):
         d = {k: v[i] for k, v in every.items()}
         ok = d["success"]
@@ -107,24 +101,25 @@ HEADER = ("| run | seed | successes /50 | sat (ok / fail) | \\|x̃\\|₀ (ok / f
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.diagnose", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("out", help="output folder of python -m experiments.reach")
+    p.add_argument("out", help="output folder of a study (python -m experiments.reach, …)")
     args = p.parse_args(argv)
     out = pathlib.Path(args.out)
     meta_path = out / "config.json"
     if not meta_path.is_file():
-        p.error(f"{meta_path} not found: give the folder of a python -m experiments.reach run")
+        p.error(f"{meta_path} not found: give the output folder of a study")
     meta = json.loads(meta_path.read_text())
     jax.config.update("jax_enable_x64", meta.get("precision", "float64") == "float64")
     seeds = list(meta["seeds"])
     results, tables = {}, []
     for name, cfg_dict in meta["runs"].items():
         cfg = config.from_dict(cfg_dict)
-        if not mdgps.uses_policy(cfg):
+        if policies.for_config(cfg) is None:
             continue
-        if checkpoint.latest(out / name.replace("/", "_") / "checkpoints") != cfg.iterations:
+        ckpt = runner.run_folder(out, *name.split("/")) / "checkpoints"
+        if checkpoint.latest(ckpt) != cfg.iterations:
             print(f"{name}: no final checkpoint, skipped", file=sys.stderr)
             continue
-        rows, table = diagnose_run(out, name, cfg, seeds)
+        rows, table = diagnose_run(ckpt, name, cfg, seeds)
         results[name] = rows
         tables.append(table)
     text = "# Robustness diagnostics\n\nmedians over the successful / failed states\n\n" + HEADER + "\n" + "\n".join(tables) + "\n"

@@ -1,4 +1,8 @@
-"""Results, figures and the summary of the reaching study (host-side, numpy and matplotlib)."""
+"""Results, figures and the summary of a study (host-side, numpy and matplotlib).
+
+Task-independent: the task of the runs (``gmr_jax.tasks``) gives the title, the names of its
+scenarios' conditions and the paper's reference numbers.
+"""
 
 from __future__ import annotations
 
@@ -7,24 +11,11 @@ import pathlib
 
 import numpy as np
 
+from gmr_jax import tasks
+from gmr_jax.runner import jsonable
+
 # Per-iteration learning-curve entries, in the order they are reported.
 CURVES = (("final_state_mse_lqr", "LQR base layer"), ("final_state_mse_policy", "policy"))
-
-
-def jsonable(tree):
-    """Nested numpy/jax values → plain JSON types."""
-    if isinstance(tree, dict):
-        return {k: jsonable(v) for k, v in tree.items()}
-    if isinstance(tree, (list, tuple)):
-        return [jsonable(v) for v in tree]
-    if tree is None or isinstance(tree, (str, bool, int)):
-        return tree
-    arr = np.asarray(tree)
-    if arr.dtype == bool:
-        return arr.tolist()
-    if np.issubdtype(arr.dtype, np.integer):
-        return arr.astype(int).tolist()
-    return np.where(np.isfinite(arr), arr, np.nan).astype(float).tolist() if arr.ndim else float(arr)
 
 
 def _label(algorithm: str, curve: str) -> str:
@@ -64,6 +55,8 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                     "states": int(rob["success"][i].size),
                     "mse": jsonable(rob["mse"][i]),
                     "distance": jsonable(rob["distance"][i])}
+                for name, ok in rob.get("extra", {}).items():
+                    rec["robustness"][f"successes_{name}"] = int(ok[i].sum())
                 rec["disturbance_sweep"] = {
                     "radii": run["sweep"]["radii"],
                     "success_rate": jsonable(run["sweep"]["success_rate"][i]),
@@ -187,12 +180,24 @@ def _total(runs_s: float, results: dict) -> str:
             f"training, evaluation, figures); the runs side by side {runs_s:.1f} s")
 
 
+def _task(configs) -> tasks.Task:
+    return tasks.of(next(iter(configs.values())))
+
+
+def plot_all(out: pathlib.Path, configs, runs) -> None:
+    """The study's figures: learning curves, paths, robustness."""
+    plot_learning_curves(out / "learning_curves.png", configs, runs)
+    plot_paths(out / "paths.png", configs, runs)
+    plot_robustness(out / "robustness.png", configs, runs)
+
+
 def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, results) -> None:
     """``summary.md``: robustness table against the paper, final-state MSE per iteration (mean
     over seeds), successes, timing."""
-    lines = ["# Reach study summary", "",
+    task = _task(configs)
+    lines = [f"# {task.title} study summary", "",
              f"Device: {device}. Seeds: {seeds}. Total wall time: {_total(total_s, results)}.", ""]
-    lines += robustness_table(runs)
+    lines += robustness_table(task, runs)
     for (scenario, algorithm), run in runs.items():
         cfg = configs[(scenario, algorithm)]
         thr, thr2 = cfg.task.success_threshold, cfg.task.success_threshold_loose
@@ -238,11 +243,7 @@ def imitation_iteration(run) -> int | None:
     return next((i + 1 for i in range(len(ok)) if ok[i:].all()), None)
 
 
-# The paper's robustness table (successes out of 50 random initial states after 10 iterations).
-PAPER_ROBUSTNESS = {("A", "mdgps"): 12, ("A", "gmr"): 50, ("AB", "mdgps"): 50, ("AB", "gmr"): 50}
-
-
-def robustness_table(runs) -> list[str]:
+def robustness_table(task: tasks.Task, runs) -> list[str]:
     """Markdown rows: our successes (mean and range over seeds) next to the paper's."""
     scenarios = sorted({s for s, a in runs if "robustness" in runs[(s, a)]}, key=lambda s: (len(s), s))
     if not scenarios:
@@ -260,8 +261,10 @@ def robustness_table(runs) -> list[str]:
                 continue
             succ = run["robustness"]["success"].sum(axis=-1)
             n = run["robustness"]["success"].shape[-1]
-            cells += [f"{succ.mean():.1f}/{n} ({succ.min()}–{succ.max()})", f"{PAPER_ROBUSTNESS[(scen, a)]}/50"]
-        lines.append(f"| {', '.join(scen)} | " + " | ".join(cells) + " |")
+            paper = task.paper_robustness.get((scen, a))
+            cells += [f"{succ.mean():.1f}/{n} ({succ.min()}–{succ.max()})",
+                      "–" if paper is None else f"{paper}/50"]
+        lines.append(f"| {', '.join(task.scenarios[scen])} | " + " | ".join(cells) + " |")
     lines.append("")
     lines.append("Loose threshold 0.1 (the paper's text): " + "; ".join(
         f"{s}/{a}: {runs[(s, a)]['robustness']['success_loose'].sum(axis=-1).mean():.1f}"

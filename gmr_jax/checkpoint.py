@@ -40,6 +40,10 @@ class CheckpointError(RuntimeError):
     """A checkpoint cannot be written, found, read or matched to the expected state."""
 
 
+class CorruptCheckpointError(CheckpointError):
+    """A checkpoint's files are damaged: unreadable metadata or arrays, or a failed checksum."""
+
+
 def _ocp():
     # Imported lazily: orbax is heavy and only needed when checkpointing.
     import orbax.checkpoint as ocp
@@ -243,6 +247,39 @@ def _rebuild(entry: dict, arr: np.ndarray, leaf):
     return arr
 
 
+def _read_meta(manager, step: int, where: str, hint: str) -> dict:
+    """The stored manifest and metadata of ``step`` (CorruptCheckpointError if unreadable)."""
+    ocp = _ocp()
+    try:
+        meta = manager.restore(step, args=ocp.args.Composite(**{_META: ocp.args.JsonRestore()}))[_META]
+    except Exception as err:
+        raise CorruptCheckpointError(f"{where} is corrupt: its metadata cannot be read "
+                                     f"({type(err).__name__}: {err}){hint}") from err
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or not isinstance(meta.get("leaves"), list):
+        raise CorruptCheckpointError(f"{where} is corrupt or not a {FORMAT} checkpoint: bad metadata{hint}")
+    return meta
+
+
+def read_metadata(path, step: int | None = None) -> dict:
+    """The metadata given to ``save`` for checkpoint ``step`` (default: the latest), without
+    reading the arrays.
+
+    Raises:
+      CheckpointError: no such checkpoint. CorruptCheckpointError: unreadable metadata.
+    """
+    steps = all_steps(path)
+    if not steps:
+        raise CheckpointError(f"no checkpoint found in {_abspath(path)}")
+    step = steps[-1] if step is None else step
+    if step not in steps:
+        raise CheckpointError(f"checkpoint step {step} not found in {_abspath(path)}; available steps: {steps}")
+    manager = _manager(path, create=False)
+    try:
+        return _read_meta(manager, step, f"checkpoint step {step} in {_abspath(path)}", "").get("metadata", {})
+    finally:
+        manager.close()
+
+
 def restore(path, template, step: int | None = None, expect: dict | None = None) -> tuple[Any, dict]:
     """Read checkpoint ``step`` (default: the latest) into the structure of ``template``.
 
@@ -275,14 +312,7 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
     ocp = _ocp()
     manager = _manager(path, create=False)
     try:
-        try:
-            meta = manager.restore(step, args=ocp.args.Composite(**{_META: ocp.args.JsonRestore()}))[_META]
-        except Exception as err:
-            raise CheckpointError(f"{where} is corrupt: its metadata cannot be read "
-                                  f"({type(err).__name__}: {err}){hint}") from err
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT or not isinstance(meta.get("leaves"), list):
-            raise CheckpointError(f"{where} is corrupt or not a {FORMAT} checkpoint: bad metadata{hint}")
-
+        meta = _read_meta(manager, step, where, hint)
         leaves = _check_template(meta, template, where)
         if expect:
             stored = meta.get("metadata", {})
@@ -304,7 +334,7 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
                 arrays = manager.restore(step, args=ocp.args.Composite(
                     **{_STATE: ocp.args.StandardRestore(targets)}))[_STATE]
             except Exception as err:
-                raise CheckpointError(f"{where} is corrupt: its arrays cannot be read "
+                raise CorruptCheckpointError(f"{where} is corrupt: its arrays cannot be read "
                                       f"({type(err).__name__}: {err}){hint}") from err
         else:
             arrays = {}
@@ -322,7 +352,7 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
             continue
         out.append(_rebuild(entry, arr, leaf))
     if bad:
-        raise CheckpointError(f"{where} is corrupt: data of {_listing(bad)} does not match the "
+        raise CorruptCheckpointError(f"{where} is corrupt: data of {_listing(bad)} does not match the "
                               f"stored checksum{hint}")
     treedef = jax.tree_util.tree_structure(template)
     return jax.tree_util.tree_unflatten(treedef, out), meta.get("metadata", {})

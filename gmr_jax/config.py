@@ -1,8 +1,12 @@
-"""Configuration: frozen, hashable dataclasses holding the paper's and the toolbox's defaults.
+"""Configuration: frozen, hashable dataclasses, one per stage, validated where they are defined.
 
-This is the one place where a default value lives. Every stage function takes the dataclass it
-needs (static under ``jit``). Sources: ``shared/reference/mdgps-toolbox.md`` (toolbox numerics),
-``shared/reference/gmr-method.md`` (paper, authors' Jaco setup, project decisions).
+Every stage function takes the dataclass it needs (static under ``jit``). The defaults here are
+the toolbox's and the paper's MDGPS settings (``shared/reference/mdgps-toolbox.md``,
+``shared/reference/gmr-method.md``); what belongs to a task — its scene, cost, conditions and
+the arm's constants — lives in the task's module under ``gmr_jax/tasks/``, which builds a whole
+:class:`Config` with :func:`make`. Each dataclass checks its own fields in ``__post_init__`` with
+the helpers below, so a bad value fails where it is made, with one line naming the field and
+what it must be.
 """
 
 from __future__ import annotations
@@ -14,7 +18,45 @@ from dataclasses import dataclass, field
 from typing import Any
 
 # ---------------------------------------------------------------------------------------------
+# Checks (one helper per kind; each raises ValueError naming the field and the allowed values)
+
+
+def check_positive_int(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}={value!r}: must be a positive integer")
+
+
+def check_positive(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"{name}={value!r}: must be a positive number")
+
+
+def check_nonnegative(name: str, value) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value >= 0 and math.isfinite(value)):
+        raise ValueError(f"{name}={value!r}: must be a number ≥ 0")
+
+
+def check_choice(name: str, value, allowed) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name}={value!r}: allowed values are {tuple(allowed)}")
+
+
+def check_int_tuple(name: str, value) -> None:
+    if not (isinstance(value, tuple) and all(isinstance(h, int) and not isinstance(h, bool) and h >= 1
+                                             for h in value)):
+        raise ValueError(f"{name}={value!r}: must be a tuple of positive integers")
+
+
+def check_number_tuple(name: str, value) -> None:
+    if not (isinstance(value, tuple) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                             and math.isfinite(v) for v in value)):
+        raise ValueError(f"{name}={value!r}: must be a tuple of finite numbers")
+
+
+# ---------------------------------------------------------------------------------------------
 # Simulation
+
+BACKENDS = ("auto", "mjx", "mujoco")
 
 
 @dataclass(frozen=True)
@@ -22,8 +64,8 @@ class SimConfig:
     """The simulated Jaco 2 plant.
 
     Attributes:
-      scene: MJCF scene name in ``jaco_mjcf/`` (``"reach"`` → ``jaco_mjcf/reach.xml``) or a path
-        to an MJCF file.
+      scene: MJCF scene name in ``jaco_mjcf/`` (``"reach"`` → ``jaco_mjcf/reach.xml``, the arm
+        alone) or a path to an MJCF file.
       control_dt: duration of one control step (s); the paper runs at 20 Hz.
       substeps: physics steps per control step; the physics timestep is control_dt / substeps.
       gravity_compensation: the plant adds the gravity torques (as the Jaco's torque mode does).
@@ -39,6 +81,13 @@ class SimConfig:
     clip_torques: bool = True
     backend: str = "auto"
 
+    def __post_init__(self):
+        if not (isinstance(self.scene, str) and self.scene):
+            raise ValueError(f"sim.scene={self.scene!r}: must be a scene name or an MJCF path")
+        check_positive("sim.control_dt", self.control_dt)
+        check_positive_int("sim.substeps", self.substeps)
+        check_choice("sim.backend", self.backend, BACKENDS)
+
     @property
     def timestep(self) -> float:
         return self.control_dt / self.substeps
@@ -53,77 +102,50 @@ class NoiseConfig:
     renormalize: bool = True
     truncate: float = 4.0
 
+    def __post_init__(self):
+        check_nonnegative("noise.sigma", self.sigma)
+        check_positive("noise.truncate", self.truncate)
+
 
 # ---------------------------------------------------------------------------------------------
-# Task and cost
-
-# Kinova actuator angles (rad) of the paper-era Jaco experiment (gmr-method.md §2).
-REACH_INITIAL_A = (-0.2046, 3.4193, 1.2257, 4.449, 2.0378, 2.1919)
-REACH_INITIAL_B = (-0.2046, 2.419, 1.2255, 4.449, 2.038, 2.1919)
-REACH_TARGET = (-0.7046, 4.1905, 1.4259, 4.4488, 2.0376, 2.1919)
-JACO_GAINS = (7.09, 2.3, 1.5, 1.2, 1.8, 0.1)
-
-
-@dataclass(frozen=True)
-class CostConfig:
-    """Reach cost (mdgps-toolbox.md §5, weights after gmr-method.md §2).
-
-    ℓ_t = ½ Σ wu u² + state term + final-state term.
-
-    Attributes:
-      action_weight: wu per joint (the authors': 5e-3 / JACO_GAINS).
-      state_wp: per-entry weights of the joint-state term over x = [q, q̇] (angles 1, velocities 0).
-      state_l1, state_l2, state_alpha: l1/l2/α of the joint-state term.
-      state_ramp: ramp of the joint-state term: "constant", "linear", "quadratic", "final_only".
-      final_wp: weights of an extra final-only term on [q, q̇] (velocities count, so the arm stops).
-      final_l1, final_l2, final_alpha: its l1/l2/α.
-      final_multiplier: wp_final_multiplier of the final term.
-      ee_weight: weight of an end-effector position (l2) term towards the target's end-effector
-        position; 0 disables it.
-    """
-
-    action_weight: tuple[float, ...] = tuple(5e-3 / g for g in JACO_GAINS)
-    state_wp: tuple[float, ...] = (1.0,) * 6 + (0.0,) * 6
-    state_l1: float = 0.0
-    state_l2: float = 1.0
-    state_alpha: float = 1e-2
-    state_ramp: str = "constant"
-    final_wp: tuple[float, ...] = (1.0,) * 6 + (0.1,) * 6
-    final_l1: float = 0.0
-    final_l2: float = 1.0
-    final_alpha: float = 1e-5
-    final_multiplier: float = 10.0
-    ee_weight: float = 0.0
-
-
-SCENARIOS = {"A": (REACH_INITIAL_A,), "B": (REACH_INITIAL_B,), "AB": (REACH_INITIAL_A, REACH_INITIAL_B)}
+# Task
 
 
 @dataclass(frozen=True)
 class TaskConfig:
-    """Reach task: conditions (initial joint angles, at rest), target, horizon.
+    """Which task and scenario, the horizon and the success thresholds.
+
+    The task's conditions, target, cost and robustness states are defined by its module
+    ``gmr_jax/tasks/<name>.py``; see :mod:`gmr_jax.tasks`.
 
     Attributes:
-      scenario: "A", "B" or "AB" (A and B as two conditions).
+      name: the task ("reach", "block_in_hole").
+      scenario: the task's scenario: which of its conditions are trained (e.g. reach "A", "AB").
       T: horizon in control steps (80 = 4 s at 20 Hz).
-      target: target joint angles (target velocity 0).
-      success_threshold: headline final-state MSE threshold (paper's table).
+      success_threshold: headline final-state MSE threshold (the paper's table).
       success_threshold_loose: the paper's text threshold.
     """
 
+    name: str = "reach"
     scenario: str = "A"
     T: int = 80
-    target: tuple[float, ...] = REACH_TARGET
     success_threshold: float = 0.01
     success_threshold_loose: float = 0.1
 
-    @property
-    def initial_angles(self) -> tuple[tuple[float, ...], ...]:
-        return SCENARIOS[self.scenario]
+    def __post_init__(self):
+        from gmr_jax import tasks  # the registry imports this module
+
+        task = tasks.get(self.name)
+        check_choice("task.scenario", self.scenario, task.scenarios)
+        check_positive_int("task.T", self.T)
+        check_positive("task.success_threshold", self.success_threshold)
+        check_positive("task.success_threshold_loose", self.success_threshold_loose)
 
     @property
     def num_conditions(self) -> int:
-        return len(self.initial_angles)
+        from gmr_jax import tasks
+
+        return len(tasks.get(self.name).scenarios[self.scenario])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -132,14 +154,29 @@ class TaskConfig:
 
 @dataclass(frozen=True)
 class InitLQRConfig:
-    """``init_lqr`` settings (mdgps-toolbox.md §4.1; Jaco values from gmr-method.md §2)."""
+    """``init_lqr`` settings (mdgps-toolbox.md §4.1; toolbox defaults, a task sets its arm's).
+
+    Attributes:
+      init_var, stiffness, stiffness_vel, final_weight: the toolbox's init_lqr settings.
+      init_acc: guessed constant acceleration per joint; empty: 0 for every joint.
+      init_gains: guessed acceleration per unit torque per joint; empty: 1 for every joint (the
+        tasks on the Jaco set 1/[7.09, 2.3, 1.5, 1.2, 1.8, 0.1], ``tasks/jaco.py``).
+    """
 
     init_var: float = 1.0
     stiffness: float = 1.0
     stiffness_vel: float = 0.25
     final_weight: float = 50.0
-    init_acc: tuple[float, ...] = (0.0,) * 6
-    init_gains: tuple[float, ...] = tuple(1.0 / g for g in JACO_GAINS)
+    init_acc: tuple[float, ...] = ()
+    init_gains: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        check_positive("init.init_var", self.init_var)
+        check_nonnegative("init.stiffness", self.stiffness)
+        check_nonnegative("init.stiffness_vel", self.stiffness_vel)
+        check_positive("init.final_weight", self.final_weight)
+        check_number_tuple("init.init_acc", self.init_acc)
+        check_number_tuple("init.init_gains", self.init_gains)
 
 
 @dataclass(frozen=True)
@@ -159,6 +196,16 @@ class LQRConfig:
     max_iterations: int = 50
     tolerance: float = 0.1
 
+    def __post_init__(self):
+        for name in ("del0", "min_eta", "max_eta", "tolerance"):
+            check_positive(f"lqr.{name}", getattr(self, name))
+        check_positive_int("lqr.max_iterations", self.max_iterations)
+        if self.min_eta >= self.max_eta:
+            raise ValueError(f"lqr.min_eta={self.min_eta!r} must be below lqr.max_eta={self.max_eta!r}")
+
+
+STEP_RULES = ("laplace", "mc")
+
 
 @dataclass(frozen=True)
 class StepConfig:
@@ -169,10 +216,18 @@ class StepConfig:
     max_step_mult: float = 10.0
     step_rule: str = "laplace"
 
+    def __post_init__(self):
+        for name in ("kl_step", "min_step_mult", "max_step_mult"):
+            check_positive(f"step.{name}", getattr(self, name))
+        check_choice("step.step_rule", self.step_rule, STEP_RULES)
+        if self.min_step_mult > self.max_step_mult:
+            raise ValueError(f"step.min_step_mult={self.min_step_mult!r} must not exceed "
+                             f"step.max_step_mult={self.max_step_mult!r}")
+
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Dynamics fit with the GMM prior (mdgps-toolbox.md §3; Jaco values from gmr-method.md §2).
+    """Dynamics fit with the GMM prior (mdgps-toolbox.md §3; the authors' Jaco values, gmr-method.md §2).
 
     Attributes:
       regularization: ridge added to the (x, u) block of the joint covariance (the toolbox adds a
@@ -191,6 +246,12 @@ class DynamicsConfig:
     strength: float = 1.0
     em_iterations: int = 100
     initial_state_var: float = 1e-6
+
+    def __post_init__(self):
+        for name in ("regularization", "strength", "initial_state_var"):
+            check_nonnegative(f"dynamics.{name}", getattr(self, name))
+        for name in ("max_clusters", "min_samples_per_cluster", "max_samples", "em_iterations"):
+            check_positive_int(f"dynamics.{name}", getattr(self, name))
 
 
 POLICY_PRIOR_MODES = ("add", "replace")
@@ -222,147 +283,15 @@ class PolicyPriorConfig:
     t0_regularization: float = 1e-8
 
     def __post_init__(self):
-        if self.mode not in POLICY_PRIOR_MODES:
-            raise ValueError(f"policy_prior.mode={self.mode!r}: allowed values are {POLICY_PRIOR_MODES}")
-
-
-# ---------------------------------------------------------------------------------------------
-# Top level
-
-
-ALGORITHMS = ("lqr", "mdgps", "gmr")
-
-
-@dataclass(frozen=True)
-class Config:
-    """A whole training run. Hashable, so it can be a static argument of ``jax.jit``.
-
-    Attributes:
-      algorithm: "lqr" (trajectory optimisation only, the paper's LQR base layer), "mdgps" (MLP
-        policy) or "gmr" (generative motor reflex policy).
-      iterations: GPS iterations.
-      num_samples: rollouts per condition per iteration.
-    """
-
-    algorithm: str = "lqr"
-    iterations: int = 10
-    num_samples: int = 5
-    sim: SimConfig = field(default_factory=SimConfig)
-    noise: NoiseConfig = field(default_factory=NoiseConfig)
-    task: TaskConfig = field(default_factory=TaskConfig)
-    cost: CostConfig = field(default_factory=CostConfig)
-    init: InitLQRConfig = field(default_factory=InitLQRConfig)
-    lqr: LQRConfig = field(default_factory=LQRConfig)
-    step: StepConfig = field(default_factory=StepConfig)
-    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
-    # Global policy (MDGPS / GMR only). The classes are defined below; lambdas defer the lookup.
-    policy_prior: "PolicyPriorConfig" = field(default_factory=lambda: PolicyPriorConfig())
-    sstep: "SStepConfig" = field(default_factory=lambda: SStepConfig())
-    mlp: "MLPConfig" = field(default_factory=lambda: MLPConfig())
-    gmr: "GMRConfig" = field(default_factory=lambda: GMRConfig())
-    sample_on_policy: bool = False  # sample the global policy instead of the local controllers (itr > 0)
-    # How the C-step's KL anchor π̄ is obtained from the global policy: "gmm" (the toolbox's
-    # GMM-prior fit around the samples, default) or "autodiff" (exact first-order expansion of the
-    # policy mean around the per-step sample mean states; gmr-method.md §3.8).
-    policy_linearization: str = "gmm"
-
-    def __post_init__(self):
-        validate(self)
-
-
-def validate(cfg: Config) -> None:
-    """Raise ``ValueError`` naming the field and the allowed values for bad settings."""
-    if cfg.algorithm not in ALGORITHMS:
-        raise ValueError(f"algorithm={cfg.algorithm!r}: allowed values are {ALGORITHMS}")
-    if cfg.task.scenario not in SCENARIOS:
-        raise ValueError(f"task.scenario={cfg.task.scenario!r}: allowed values are {tuple(SCENARIOS)}")
-    for name, value in (("iterations", cfg.iterations), ("num_samples", cfg.num_samples),
-                        ("task.T", cfg.task.T), ("sim.substeps", cfg.sim.substeps)):
-        if not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name}={value!r}: must be a positive integer")
-    if cfg.num_samples < 2:
-        raise ValueError(f"num_samples={cfg.num_samples}: the dynamics fit needs at least 2 samples")
-    if cfg.sim.backend not in ("auto", "mjx", "mujoco"):
-        raise ValueError(f"sim.backend={cfg.sim.backend!r}: allowed values are ('auto', 'mjx', 'mujoco')")
-    if not (cfg.sim.control_dt > 0 and math.isfinite(cfg.sim.control_dt)):
-        raise ValueError(f"sim.control_dt={cfg.sim.control_dt!r}: must be a positive number")
-    if cfg.cost.state_ramp not in ("constant", "linear", "quadratic", "final_only"):
-        raise ValueError(f"cost.state_ramp={cfg.cost.state_ramp!r}: allowed values are "
-                         "('constant', 'linear', 'quadratic', 'final_only')")
-    if cfg.policy_linearization not in ("gmm", "autodiff"):
-        raise ValueError(f"policy_linearization={cfg.policy_linearization!r}: allowed values are "
-                         "('gmm', 'autodiff')")
-    if cfg.step.step_rule not in ("laplace", "mc"):
-        raise ValueError(f"step.step_rule={cfg.step.step_rule!r}: allowed values are ('laplace', 'mc')")
-
-
-def reach(scenario: str = "A", algorithm: str = "lqr", **overrides: Any) -> Config:
-    """The paper's reach configuration for a scenario ("A", "B", "AB") and algorithm.
-
-    ``overrides`` replace top-level fields (e.g. ``iterations=5``) or, with a double underscore,
-    nested ones (e.g. ``task__T=20``, ``sim__backend="mjx"``).
-    """
-    nested: dict[str, dict[str, Any]] = {}
-    top: dict[str, Any] = {}
-    for key, value in overrides.items():
-        if "__" in key:
-            group, name = key.split("__", 1)
-            nested.setdefault(group, {})[name] = value
-        else:
-            top[key] = value
-    base = Config()
-    unknown_top = sorted(set(top) - {f.name for f in dataclasses.fields(Config)})
-    if unknown_top:
-        raise ValueError(f"unknown configuration field(s) {unknown_top}")
-    groups = {}
-    for group, values in nested.items():
-        if not hasattr(base, group):
-            raise ValueError(f"unknown configuration group {group!r}")
-        current = getattr(base, group)
-        unknown = set(values) - {f.name for f in dataclasses.fields(current)}
-        if unknown:
-            raise ValueError(f"unknown field(s) {sorted(unknown)} in configuration group {group!r}")
-        groups[group] = dataclasses.replace(current, **values)
-    task = groups.pop("task", base.task)
-    task = dataclasses.replace(task, scenario=scenario)
-    return dataclasses.replace(base, algorithm=algorithm, task=task, **groups, **top)
-
-
-def to_dict(cfg: Config) -> dict[str, Any]:
-    """A JSON-serialisable dictionary of the whole configuration."""
-    return dataclasses.asdict(cfg)
-
-
-def from_dict(d: dict[str, Any]) -> Config:
-    """The inverse of :func:`to_dict` (e.g. a run's ``config.json``); lists become tuples.
-
-    Goes through :func:`reach`, so unknown groups or fields raise its ValueError naming them.
-    """
-    def tup(v):
-        return tuple(tup(x) for x in v) if isinstance(v, list) else v
-
-    d = dict(d)
-    task = dict(d.pop("task", {}))
-    scenario = task.pop("scenario", TaskConfig.scenario)
-    algorithm = d.pop("algorithm", Config.algorithm)
-    overrides = {f"task__{k}": tup(v) for k, v in task.items()}
-    for name, value in d.items():
-        if isinstance(value, dict):
-            overrides.update({f"{name}__{k}": tup(v) for k, v in value.items()})
-        else:
-            overrides[name] = tup(value)
-    return reach(scenario, algorithm, **overrides)
-
-
-def to_json(cfg: Config) -> str:
-    return json.dumps(to_dict(cfg), indent=2)
+        for name in ("min_samples_per_cluster", "max_clusters", "max_samples", "em_iterations"):
+            check_positive_int(f"policy_prior.{name}", getattr(self, name))
+        check_nonnegative("policy_prior.strength", self.strength)
+        check_nonnegative("policy_prior.t0_regularization", self.t0_regularization)
+        check_choice("policy_prior.mode", self.mode, POLICY_PRIOR_MODES)
 
 
 # ---------------------------------------------------------------------------------------------
 # Policy and S-step (mdgps-toolbox.md §4.3, gmr-method.md §1–§3)
-
-MLP_INITS = ("lecun_normal", "normal")
-ACTIVATIONS = ("relu", "leaky_relu", "tanh", "elu", "swish")
 
 
 @dataclass(frozen=True)
@@ -399,15 +328,19 @@ class SStepConfig:
 
     def __post_init__(self):
         for name in ("epochs", "batch_size", "unroll"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"sstep.{name}={value!r}: must be a positive integer")
+            check_positive_int(f"sstep.{name}", getattr(self, name))
         for name in ("lr", "eps", "obs_std_floor", "weight_clip"):
+            check_positive(f"sstep.{name}", getattr(self, name))
+        check_nonnegative("sstep.weight_decay", self.weight_decay)
+        check_nonnegative("sstep.weight_median_floor", self.weight_median_floor)
+        for name in ("b1", "b2"):
             value = getattr(self, name)
-            if not (value > 0 and math.isfinite(value)):
-                raise ValueError(f"sstep.{name}={value!r}: must be a positive number")
-        if not (self.weight_decay >= 0 and math.isfinite(self.weight_decay)):
-            raise ValueError(f"sstep.weight_decay={self.weight_decay!r}: must be a number ≥ 0")
+            if not (isinstance(value, (int, float)) and 0 <= value < 1):
+                raise ValueError(f"sstep.{name}={value!r}: must be in [0, 1)")
+
+
+MLP_INITS = ("lecun_normal", "normal")
+ACTIVATIONS = ("relu", "leaky_relu", "tanh", "elu", "swish")
 
 
 @dataclass(frozen=True)
@@ -434,16 +367,12 @@ class MLPConfig:
     ent_reg: float = 0.0
 
     def __post_init__(self):
-        if not (isinstance(self.hidden, tuple) and all(isinstance(h, int) and h >= 1 for h in self.hidden)):
-            raise ValueError(f"mlp.hidden={self.hidden!r}: must be a tuple of positive integers")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"mlp.activation={self.activation!r}: allowed values are {ACTIVATIONS}")
-        if self.init not in MLP_INITS:
-            raise ValueError(f"mlp.init={self.init!r}: allowed values are {MLP_INITS}")
-        if not (self.init_var > 0 and math.isfinite(self.init_var)):
-            raise ValueError(f"mlp.init_var={self.init_var!r}: must be a positive number")
-        if not (self.ent_reg >= 0 and math.isfinite(self.ent_reg)):
-            raise ValueError(f"mlp.ent_reg={self.ent_reg!r}: must be a number ≥ 0")
+        check_int_tuple("mlp.hidden", self.hidden)
+        check_choice("mlp.activation", self.activation, ACTIVATIONS)
+        check_choice("mlp.init", self.init, MLP_INITS)
+        check_positive("mlp.init_std", self.init_std)
+        check_positive("mlp.init_var", self.init_var)
+        check_nonnegative("mlp.ent_reg", self.ent_reg)
 
 
 GMR_HEAD_COORDINATES = ("normalized", "raw")
@@ -512,28 +441,163 @@ class GMRConfig:
     ent_reg: float = 0.0
 
     def __post_init__(self):
-        if not (isinstance(self.latent, int) and self.latent >= 1):
-            raise ValueError(f"gmr.latent={self.latent!r}: must be a positive integer")
+        check_positive_int("gmr.latent", self.latent)
         for name in ("encoder_hidden", "decoder_hidden", "translation_hidden"):
-            value = getattr(self, name)
-            if not (isinstance(value, tuple) and all(isinstance(h, int) and h >= 1 for h in value)):
-                raise ValueError(f"gmr.{name}={value!r}: must be a tuple of positive integers")
-        if not (self.encoder_squash >= 0 and math.isfinite(self.encoder_squash)):
-            raise ValueError(f"gmr.encoder_squash={self.encoder_squash!r}: must be a number ≥ 0")
-        if not (0 <= self.negative_slope < 1):
+            check_int_tuple(f"gmr.{name}", getattr(self, name))
+        check_nonnegative("gmr.encoder_squash", self.encoder_squash)
+        if not (isinstance(self.negative_slope, (int, float)) and 0 <= self.negative_slope < 1):
             raise ValueError(f"gmr.negative_slope={self.negative_slope!r}: must be in [0, 1)")
-        if not (self.alpha >= 0 and math.isfinite(self.alpha)):
-            raise ValueError(f"gmr.alpha={self.alpha!r}: must be a number ≥ 0")
-        if self.head_coordinates not in GMR_HEAD_COORDINATES:
-            raise ValueError(f"gmr.head_coordinates={self.head_coordinates!r}: allowed values are "
-                             f"{GMR_HEAD_COORDINATES}")
-        if self.exploration not in GMR_EXPLORATION:
-            raise ValueError(f"gmr.exploration={self.exploration!r}: allowed values are {GMR_EXPLORATION}")
-        if not (self.init_var > 0 and math.isfinite(self.init_var)):
-            raise ValueError(f"gmr.init_var={self.init_var!r}: must be a positive number")
-        if not (self.cov_std_range > 1 and math.isfinite(self.cov_std_range)):
+        check_nonnegative("gmr.alpha", self.alpha)
+        check_choice("gmr.head_coordinates", self.head_coordinates, GMR_HEAD_COORDINATES)
+        check_choice("gmr.exploration", self.exploration, GMR_EXPLORATION)
+        check_positive("gmr.init_var", self.init_var)
+        if not (isinstance(self.cov_std_range, (int, float)) and self.cov_std_range > 1
+                and math.isfinite(self.cov_std_range)):
             raise ValueError(f"gmr.cov_std_range={self.cov_std_range!r}: must be a number > 1")
-        if not (self.cov_offdiag_bound > 0 and math.isfinite(self.cov_offdiag_bound)):
-            raise ValueError(f"gmr.cov_offdiag_bound={self.cov_offdiag_bound!r}: must be a positive number")
-        if not (self.ent_reg >= 0 and math.isfinite(self.ent_reg)):
-            raise ValueError(f"gmr.ent_reg={self.ent_reg!r}: must be a number ≥ 0")
+        check_positive("gmr.cov_offdiag_bound", self.cov_offdiag_bound)
+        check_nonnegative("gmr.ent_reg", self.ent_reg)
+
+
+# ---------------------------------------------------------------------------------------------
+# Top level
+
+POLICY_LINEARIZATIONS = ("gmm", "autodiff")
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole training run. Hashable, so it can be a static argument of ``jax.jit``.
+
+    Build one with :func:`make` (or :func:`reach`): it starts from the task's own stage settings
+    (scene, cost, the arm's initial controller) and applies overrides.
+
+    Attributes:
+      task: which task and scenario (:class:`TaskConfig`).
+      cost: the task's cost settings, a frozen dataclass defined by the task's module.
+      algorithm: "lqr" (trajectory optimisation only, the paper's LQR base layer), "mdgps" (MLP
+        policy) or "gmr" (generative motor reflex policy); ``gmr_jax.policies.ALGORITHMS``.
+      iterations: GPS iterations.
+      num_samples: rollouts per condition per iteration (≥ 2: the dynamics fit needs two).
+      sample_on_policy: sample the global policy instead of the local controllers (after the
+        first iteration).
+      policy_linearization: how the C-step's KL anchor π̄ is obtained from the global policy:
+        "gmm" (the toolbox's GMM-prior fit around the samples, default) or "autodiff" (exact
+        first-order expansion of the policy mean around the per-step sample mean states;
+        gmr-method.md §3.8).
+    """
+
+    task: TaskConfig
+    cost: Any
+    algorithm: str = "lqr"
+    iterations: int = 10
+    num_samples: int = 5
+    sim: SimConfig = field(default_factory=SimConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    init: InitLQRConfig = field(default_factory=InitLQRConfig)
+    lqr: LQRConfig = field(default_factory=LQRConfig)
+    step: StepConfig = field(default_factory=StepConfig)
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    policy_prior: PolicyPriorConfig = field(default_factory=PolicyPriorConfig)
+    sstep: SStepConfig = field(default_factory=SStepConfig)
+    mlp: MLPConfig = field(default_factory=MLPConfig)
+    gmr: GMRConfig = field(default_factory=GMRConfig)
+    sample_on_policy: bool = False
+    policy_linearization: str = "gmm"
+
+    def __post_init__(self):
+        from gmr_jax import policies, tasks  # both registries import this module
+
+        check_choice("algorithm", self.algorithm, policies.ALGORITHMS)
+        check_positive_int("iterations", self.iterations)
+        check_positive_int("num_samples", self.num_samples)
+        if self.num_samples < 2:
+            raise ValueError(f"num_samples={self.num_samples}: the dynamics fit needs at least 2 samples")
+        check_choice("policy_linearization", self.policy_linearization, POLICY_LINEARIZATIONS)
+        cost_type = tasks.get(self.task.name).cost_config
+        if not isinstance(self.cost, cost_type):
+            raise ValueError(f"cost={type(self.cost).__name__}: task {self.task.name!r} needs a "
+                             f"{cost_type.__module__}.{cost_type.__name__}")
+
+
+def override(cfg: Config, **overrides: Any) -> Config:
+    """``cfg`` with fields replaced: top-level names (``iterations=5``) or, with a double
+    underscore, nested ones (``task__T=20``, ``sim__backend="mjx"``, ``cost__state_l2=2.0``).
+
+    Raises:
+      ValueError: an unknown group or field (named), or a value its dataclass rejects.
+    """
+    nested: dict[str, dict[str, Any]] = {}
+    top: dict[str, Any] = {}
+    for key, value in overrides.items():
+        if "__" in key:
+            group, name = key.split("__", 1)
+            nested.setdefault(group, {})[name] = value
+        else:
+            top[key] = value
+    top_fields = {f.name for f in dataclasses.fields(Config)}
+    unknown_top = sorted(set(top) - top_fields)
+    if unknown_top:
+        raise ValueError(f"unknown configuration field(s) {unknown_top}")
+    groups = {}
+    for group, values in nested.items():
+        current = getattr(cfg, group, None)
+        if group not in top_fields or not dataclasses.is_dataclass(current):
+            raise ValueError(f"unknown configuration group {group!r}")
+        unknown = set(values) - {f.name for f in dataclasses.fields(current)}
+        if unknown:
+            raise ValueError(f"unknown field(s) {sorted(unknown)} in configuration group {group!r}")
+        groups[group] = dataclasses.replace(current, **values)
+    return dataclasses.replace(cfg, **groups, **top)
+
+
+def make(task: str = "reach", scenario: str | None = None, algorithm: str = "lqr",
+         **overrides: Any) -> Config:
+    """The configuration of ``task`` (its stage settings) for a scenario and an algorithm.
+
+    Args:
+      task: a registered task name (``gmr_jax.tasks.TASKS``).
+      scenario: one of the task's scenarios (default: its first).
+      algorithm: "lqr", "mdgps" or "gmr".
+      overrides: see :func:`override`.
+    """
+    from gmr_jax import tasks
+
+    t = tasks.get(task)
+    base = t.default_config(t.default_scenarios[0] if scenario is None else scenario)
+    return override(base, algorithm=algorithm, **overrides)
+
+
+def reach(scenario: str = "A", algorithm: str = "lqr", **overrides: Any) -> Config:
+    """The paper's reach configuration for a scenario ("A", "B", "AB") and algorithm."""
+    return make("reach", scenario, algorithm, **overrides)
+
+
+def to_dict(cfg: Config) -> dict[str, Any]:
+    """A JSON-serialisable dictionary of the whole configuration."""
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(d: dict[str, Any]) -> Config:
+    """The inverse of :func:`to_dict` (e.g. a run's ``config.json``); lists become tuples.
+
+    Goes through :func:`make`, so unknown groups or fields raise its ValueError naming them.
+    """
+    def tup(v):
+        return tuple(tup(x) for x in v) if isinstance(v, list) else v
+
+    d = dict(d)
+    task = dict(d.pop("task", {}))
+    name = task.pop("name", TaskConfig.name)
+    scenario = task.pop("scenario", None)
+    algorithm = d.pop("algorithm", Config.algorithm)
+    overrides = {f"task__{k}": tup(v) for k, v in task.items()}
+    for group, value in d.items():
+        if isinstance(value, dict):
+            overrides.update({f"{group}__{k}": tup(v) for k, v in value.items()})
+        else:
+            overrides[group] = tup(value)
+    return make(name, scenario, algorithm, **overrides)
+
+
+def to_json(cfg: Config) -> str:
+    return json.dumps(to_dict(cfg), indent=2)

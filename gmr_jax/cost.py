@@ -22,7 +22,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax.config import CostConfig
 from gmr_jax.types import QuadraticCost
 
 Array = jax.Array
@@ -346,50 +345,6 @@ def cost_sum(fns: Sequence, weights: Sequence | None = None) -> CostFn:
         return l, g, H
 
     return CostFn(value, expand)
-
-
-def reach_cost(cfg: CostConfig, target_x, T: int, ee_fn: Callable | None = None,
-               target_ee=None) -> CostFn:
-    """The reach cost of a :class:`CostConfig`.
-
-    ℓ_t = ½ Σ wu u²                                        (action)
-        + state term   on x − target_x, weights state_wp, ramp state_ramp
-        + final term   on x − target_x, weights final_wp, final-only ramp × final_multiplier
-        + end-effector l2 term ½ ee_weight ‖ee(q) − target_ee‖²   (only if ee_weight > 0)
-
-    Args:
-      cfg: the cost settings.
-      target_x: [dX] target state (target angles, zero velocity).
-      T: horizon.
-      ee_fn: q [6] -> [3]; needed only when cfg.ee_weight > 0.
-      target_ee: [3] target end-effector position (default: ee_fn at the target's angles).
-
-    Returns:
-      A :class:`CostFn`.
-    """
-    dX = len(cfg.state_wp)
-    if np.shape(target_x) != (dX,):
-        raise ValueError(f"reach_cost: target_x has shape {np.shape(target_x)}, expected ({dX},) "
-                         "to match cfg.state_wp")
-    if cfg.state_ramp not in RAMP_MODES:
-        raise ValueError(f"cost.state_ramp={cfg.state_ramp!r}: allowed values are {RAMP_MODES}")
-    terms = [
-        action_cost(cfg.action_weight),
-        state_cost(target_x, cfg.state_wp, cfg.state_l1, cfg.state_l2, cfg.state_alpha,
-                   ramp(T, cfg.state_ramp, 1.0)),
-        state_cost(target_x, cfg.final_wp, cfg.final_l1, cfg.final_l2, cfg.final_alpha,
-                   ramp(T, "final_only", cfg.final_multiplier)),
-    ]
-    if cfg.ee_weight > 0:
-        if ee_fn is None:
-            raise ValueError("cost.ee_weight > 0 needs an end-effector function (ee_fn)")
-        n_joints = dX // 2
-        if target_ee is None:
-            target_ee = ee_fn(jnp.asarray(target_x)[:n_joints])
-        # A pure l2 term (l1 = 0), so the choice of norm does not matter; logl2 is CostFK's.
-        terms.append(end_effector_cost(ee_fn, target_ee, (cfg.ee_weight,) * 3, 0.0, 1.0, 1e-5,
-                                       ramp(T, "constant", 1.0), norm="logl2", n_joints=n_joints))
-    return cost_sum(terms)
 
 
 # ---------------------------------------------------------------------------------------------

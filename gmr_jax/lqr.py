@@ -1,4 +1,5 @@
-"""KL-constrained LQR: the C-step of MDGPS (mdgps-toolbox.md §2, §1.3, §4.1, §10).
+"""KL-constrained LQR: the C-step of MDGPS (mdgps-toolbox.md §2, §4.1, §10); the step size is
+``step_size.py``.
 
 Everything here is for ONE condition and is pure, jittable and vmappable over a leading
 condition axis (each condition carries its own η). Loops over time are ``lax.scan``; the
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from gmr_jax import linalg
-from gmr_jax.config import InitLQRConfig, LQRConfig, StepConfig
+from gmr_jax.config import InitLQRConfig, LQRConfig
 from gmr_jax.types import Dynamics, LinearGaussianPolicy, Marginals, QuadraticCost
 
 Array = jax.Array
@@ -40,13 +41,11 @@ __all__ = [
     "init_lqr",
     "init_pd",
     "kl_augmented_cost",
-    "kl_epsilon",
     "lqr_backward",
     "lqr_forward",
     "policy_from_covariance",
     "policy_from_precision",
     "policy_precision",
-    "step_multiplier",
     "traj_kl",
 ]
 
@@ -477,38 +476,6 @@ def check_eta_search(info: EtaSearchInfo, dyn: Dynamics | None = None) -> None:
     raise ValueError(f"Failed to find PD solution even for very large eta, or the KL was not "
                      f"finite (conditions {bad}); check that dynamics and cost are reasonably "
                      "well conditioned")
-
-
-# ---------------------------------------------------------------------------------------------
-# Step size (§1.3)
-
-
-def kl_epsilon(step_mult, T: int, cfg: StepConfig = StepConfig()):
-    """KL budget of the C-step, ε = kl_step·step_mult·T (summed over the horizon). [] → []."""
-    return cfg.kl_step * step_mult * T
-
-
-def step_multiplier(predicted, actual, step_mult, cfg: StepConfig = StepConfig()):
-    """Toolbox ``_set_new_mult`` (§1.3).
-
-    Models the improvement as a·KL + b·KL² and takes its maximiser:
-    new_mult = predicted / (2·max(1e-4, predicted − actual)) clipped to [0.1, 5.0];
-    returns clip(new_mult·step_mult, min_step_mult, max_step_mult).
-
-    Args:
-      predicted, actual: [...] predicted and actual cost improvement.
-      step_mult: [...] current multiplier.
-    Returns:
-      [...] new step multiplier (dtype of the inputs).
-    """
-    predicted = jnp.asarray(predicted)
-    dtype = jnp.result_type(predicted, actual, step_mult)
-    predicted = predicted.astype(dtype)
-    actual = jnp.asarray(actual, dtype)
-    step_mult = jnp.asarray(step_mult, dtype)
-    new_mult = predicted / (2.0 * jnp.maximum(1e-4, predicted - actual))
-    new_mult = jnp.clip(new_mult, 0.1, 5.0)
-    return jnp.clip(new_mult * step_mult, cfg.min_step_mult, cfg.max_step_mult)
 
 
 # ---------------------------------------------------------------------------------------------

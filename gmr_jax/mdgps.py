@@ -1,12 +1,22 @@
-"""The GPS iteration: one pure, jittable function, and a whole run as a ``lax.scan`` over it.
+"""The GPS iteration: one pure, jittable function of named stages, and a whole run as a scan.
 
-Two algorithms share the code (``cfg.algorithm``):
+``iteration`` reads as the data flow of DESIGN.md:
 
-* ``"lqr"`` — trajectory optimisation only (the toolbox's AlgorithmTrajOpt, the paper's "LQR base
-  layer"): sample the local controllers → cost expansion → dynamics fit → step-size rule →
-  C-step with the KL bound to the previous local controller.
-* ``"mdgps"`` / ``"gmr"`` — mirror-descent GPS (mdgps-toolbox.md §0): the KL anchor of the C-step
-  is the linearised global policy, and an S-step fits the policy to the new controllers.
+    sample → cost expansion → dynamics fit → KL anchor (policy linearisation) → step size
+           → C-step → S-step
+
+Three algorithms share it (``cfg.algorithm``, registry ``gmr_jax.policies.ALGORITHMS``):
+
+* ``"lqr"`` — trajectory optimisation only (the toolbox's AlgorithmTrajOpt, the paper's "LQR
+  base layer"): the KL anchor of the C-step is the previous local controller; no S-step.
+* ``"mdgps"`` / ``"gmr"`` — mirror-descent GPS (mdgps-toolbox.md §0) with the MLP or the GMR
+  policy: the anchor is the global policy linearised around the samples, and an S-step fits the
+  policy to the new controllers.
+
+The first iteration differs in one way: MDGPS first fits the policy to the initial controllers
+(the toolbox's catch-up S-step, §0.4) and the step size is not adapted. ``first`` is a boolean
+scalar and both differences are ``lax.cond``/``where`` on it, so one compiled program serves
+every iteration.
 
 Axis conventions: condition M, sample N, time T. Every array in the state has a leading M axis
 except the iteration counter and the policy parameters (shared by the conditions).
@@ -14,19 +24,36 @@ except the iteration counter and the policy parameters (shared by the conditions
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from gmr_jax import cost as cost_lib
 from gmr_jax import dynamics as dyn_lib
-from gmr_jax import linearize, lqr, policies, tasks
+from gmr_jax import evaluate, linearize, lqr, policies, step_size, tasks
 from gmr_jax import noise as noise_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax import sstep as sstep_lib
 from gmr_jax.config import Config
-from gmr_jax.types import Dynamics, LinearGaussianPolicy, QuadraticCost
+from gmr_jax.dynamics import DynamicsPrior
+from gmr_jax.linearize import PolicyPrior
+from gmr_jax.step_size import LocalModel
+from gmr_jax.types import Dynamics, LinearGaussianPolicy, Marginals, QuadraticCost, Trajectories
+
+Array = jax.Array
+
+
+class PolicyState(NamedTuple):
+    """The global policy of MDGPS / GMR and the prior of its linearisation.
+
+    Attributes:
+      params: PolicyParams (shared by the conditions).
+      prior: PolicyPrior [M], each condition's store of states and GMM over [x, π(x)].
+    """
+
+    params: policies.PolicyParams
+    prior: PolicyPrior
 
 
 class TrainState(NamedTuple):
@@ -35,31 +62,21 @@ class TrainState(NamedTuple):
     Attributes:
       iteration: [] int32, iterations completed.
       traj: LinearGaussianPolicy [M, T, ...], the current local controllers (sampled next).
-      prev_traj: LinearGaussianPolicy [M, T, ...], the controllers of the previous iteration.
       eta: [M] dual variable of each condition's KL constraint (warm start of the η search).
       step_mult: [M] KL step multiplier.
       dyn_prior: DynamicsPrior [M], each condition's ring buffer of trajectories and GMM.
-      prev_dyn: Dynamics [M], the previous iteration's fitted dynamics.
-      prev_cost: QuadraticCost [M], the previous iteration's cost expansion.
-      prev_cs: [M] the previous iteration's mean sample cost (for the 'mc' step rule).
-      policy: PolicyParams of the global policy (MDGPS/GMR; None for "lqr").
-      pol_prior: PolicyPrior [M] of the policy linearisation (None for "lqr").
-      prev_pol_lin: LinearGaussianPolicy [M], the previous linearisation of the policy (None
-        for "lqr").
+      prev: LocalModel [M], the previous iteration's anchor, dynamics, cost and sample cost (the
+        step-size rule compares against it).
+      policy: PolicyState of MDGPS / GMR; None for trajectory optimisation.
     """
 
-    iteration: jax.Array
+    iteration: Array
     traj: LinearGaussianPolicy
-    prev_traj: LinearGaussianPolicy
-    eta: jax.Array
-    step_mult: jax.Array
-    dyn_prior: Any
-    prev_dyn: Dynamics
-    prev_cost: QuadraticCost
-    prev_cs: jax.Array
-    policy: Any = None
-    pol_prior: Any = None
-    prev_pol_lin: Any = None
+    eta: Array
+    step_mult: Array
+    dyn_prior: DynamicsPrior
+    prev: LocalModel
+    policy: PolicyState | None = None
 
 
 def _zeros_like_tree(tree):
@@ -70,21 +87,7 @@ def _broadcast_conditions(tree, M: int):
     return jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (M,) + jnp.shape(a)), tree)
 
 
-def uses_policy(cfg: Config) -> bool:
-    """Whether the algorithm trains a global policy (MDGPS, GMR) or only local controllers."""
-    return cfg.algorithm != "lqr"
-
-
-def make_global_policy(cfg: Config) -> policies.Policy:
-    """The global policy of the configured algorithm ("mdgps": MLP, "gmr": GMR)."""
-    if cfg.algorithm == "mdgps":
-        return policies.make_policy("mlp", cfg.mlp)
-    if cfg.algorithm == "gmr":
-        return policies.make_policy("gmr", cfg.gmr)
-    raise ValueError(f"algorithm={cfg.algorithm!r} has no global policy")
-
-
-def init(cfg: Config, key: jax.Array) -> TrainState:
+def init(cfg: Config, key: Array) -> TrainState:
     """The initial training state: ``init_lqr`` controllers around each condition's x0 and, for
     MDGPS/GMR, freshly initialised policy parameters.
 
@@ -108,24 +111,29 @@ def init(cfg: Config, key: jax.Array) -> TrainState:
         x0sigma=jnp.zeros((M, dX, dX), dtype))
     cost0 = QuadraticCost(Cm=jnp.zeros((M, T, dX + dU, dX + dU), dtype),
                           cv=jnp.zeros((M, T, dX + dU), dtype), cc=jnp.zeros((M, T), dtype))
-    state = TrainState(
-        iteration=jnp.zeros((), jnp.int32), traj=traj, prev_traj=_zeros_like_tree(traj),
-        eta=jnp.ones((M,), dtype), step_mult=jnp.ones((M,), dtype), dyn_prior=prior,
-        prev_dyn=dyn0, prev_cost=cost0, prev_cs=jnp.zeros((M,), dtype))
-    if not uses_policy(cfg):
-        return state
-    pol = make_global_policy(cfg)
-    params = pol.init(key, dX, dU, dtype)
-    pol_prior = _broadcast_conditions(linearize.policy_prior_empty(T, dX, dU, cfg.policy_prior, dtype), M)
-    return state._replace(policy=params, pol_prior=pol_prior, prev_pol_lin=_zeros_like_tree(traj))
+    prev = LocalModel(anchor=_zeros_like_tree(traj), dyn=dyn0, cost=cost0,
+                      sample_cost=jnp.zeros((M,), dtype))
+    policy = policies.for_config(cfg)
+    policy_state = None
+    if policy is not None:
+        pol_prior = linearize.policy_prior_empty(T, dX, dU, cfg.policy_prior, dtype)
+        policy_state = PolicyState(params=policy.init(key, dX, dU, dtype),
+                                   prior=_broadcast_conditions(pol_prior, M))
+    return TrainState(iteration=jnp.zeros((), jnp.int32), traj=traj, eta=jnp.ones((M,), dtype),
+                      step_mult=jnp.ones((M,), dtype), dyn_prior=prior, prev=prev,
+                      policy=policy_state)
 
 
-def sample(cfg: Config, policy, x0: jax.Array, key: jax.Array, num_samples: int):
-    """Noisy rollouts of per-condition controllers.
+# ---------------------------------------------------------------------------------------------
+# Stages
+
+
+def sample(cfg: Config, controller, x0: Array, key: Array, num_samples: int) -> Trajectories:
+    """Noisy rollouts with the toolbox's smoothed exploration noise.
 
     Args:
-      policy: a LinearGaussianPolicy with a leading condition axis M, or a callable
-        ``policy(t, x, eps_t) -> u`` shared by all conditions.
+      controller: a LinearGaussianPolicy with a leading condition axis M, or a callable
+        ``(t, x, eps_t) -> u`` shared by all conditions.
       x0: [M, dX] initial states.
       key: PRNG key.
       num_samples: N rollouts per condition.
@@ -137,46 +145,40 @@ def sample(cfg: Config, policy, x0: jax.Array, key: jax.Array, num_samples: int)
     keys = jax.random.split(key, (M, num_samples))
     eps = jax.vmap(jax.vmap(lambda k: noise_lib.smooth_noise(k, cfg.task.T, s.dU, cfg.noise)))(keys)
     eps = eps.astype(x0.dtype)
-    pol_axis = 0 if isinstance(policy, LinearGaussianPolicy) else None
+    axis = 0 if isinstance(controller, LinearGaussianPolicy) else None
     per_sample = jax.vmap(lambda p, x, e: sim_lib.rollout(s, p, x, e), in_axes=(None, None, 0))
-    return jax.vmap(per_sample, in_axes=(pol_axis, 0, 0))(policy, x0, eps)
+    return jax.vmap(per_sample, in_axes=(axis, 0, 0))(controller, x0, eps)
 
 
-def evaluate_controllers(cfg: Config, policy, x0: jax.Array):
-    """Noiseless execution from each condition's initial state.
-
-    Args:
-      policy: LinearGaussianPolicy [M, ...] (each condition's own) or a callable shared by all.
-      x0: [M, dX].
-    Returns:
-      (Trajectories [M, T, ...], final-state MSE [M] against the task target).
-    """
-    s = sim_lib.make_sim(cfg.sim)
-    eps = jnp.zeros((cfg.task.T, s.dU), x0.dtype)
-    pol_axis = 0 if isinstance(policy, LinearGaussianPolicy) else None
-    out = jax.vmap(lambda p, x: sim_lib.rollout(s, p, x, eps), in_axes=(pol_axis, 0))(policy, x0)
-    mse = tasks.final_state_mse(out.X[:, -1], tasks.target_state(cfg.task, x0.dtype))
-    return out, mse
+def sample_stage(cfg: Config, state: TrainState, x0: Array, key: Array, first: Array) -> Trajectories:
+    """This iteration's rollouts [M, N]: the local controllers, or, with ``sample_on_policy``
+    after the first iteration, the global policy with its exploration noise."""
+    local = lambda: sample(cfg, state.traj, x0, key, cfg.num_samples)  # noqa: E731
+    if state.policy is None or not cfg.sample_on_policy:
+        return local()
+    explore = policies.sampling_fn(policies.for_config(cfg), state.policy.params)
+    return jax.lax.cond(first, local, lambda: sample(cfg, explore, x0, key, cfg.num_samples))
 
 
-def policy_mean_fn(cfg: Config, params):
-    """The global policy's deterministic action as a rollout callable ``(t, x, eps_t) -> u``."""
-    pol = make_global_policy(cfg)
-    return lambda t, x, e: pol.mean(params, x)
+def cost_stage(cfg: Config, samples: Trajectories) -> tuple[QuadraticCost, Array]:
+    """Sample-averaged quadratic cost expansion [M, T, ...] and per-sample total costs [M, N]."""
+    cost_fn = tasks.of(cfg).make_cost(cfg)
+    expansion, cs = jax.vmap(lambda X, U: cost_lib.quadratic_expansion(cost_fn, X, U))(samples.X, samples.U)
+    return expansion, jnp.sum(cs, axis=-1)
 
 
-def policy_sampling_fn(cfg: Config, params):
-    """The global policy with exploration noise, ``u = mean(x) + chol(cov(x)) eps_t``."""
-    pol = make_global_policy(cfg)
-    return lambda t, x, e: policies.noisy_action(pol, params, x, e)
+def dynamics_stage(cfg: Config, prior: DynamicsPrior, samples: Trajectories,
+                   key: Array) -> tuple[DynamicsPrior, Dynamics]:
+    """Refresh each condition's prior with its samples, then fit the dynamics per time step."""
+    keys = jax.random.split(key, samples.X.shape[0])
+    prior = jax.vmap(lambda p, k, X, U: dyn_lib.update_dynamics_prior(p, k, X, U, cfg.dynamics))(
+        prior, keys, samples.X, samples.U)
+    dyn = jax.vmap(lambda p, X, U: dyn_lib.fit_dynamics(p, X, U, cfg.dynamics))(prior, samples.X, samples.U)
+    return prior, dyn
 
 
-def _laplace_total(traj, dyn, cst):
-    """Σ_t of the Laplace cost estimate, per condition ([M])."""
-    return jnp.sum(jax.vmap(lqr.estimate_cost)(traj, dyn, cst), axis=-1)
-
-
-def linearize_global_policy(cfg: Config, params, pol_prior, X: jax.Array, key: jax.Array):
+def linearize_global_policy(cfg: Config, params, pol_prior: PolicyPrior, X: Array,
+                            key: Array) -> tuple[LinearGaussianPolicy, PolicyPrior]:
     """Fit the linear-Gaussian model π̄ of the global policy around the samples (§1.2, §4.2).
 
     Args:
@@ -186,12 +188,11 @@ def linearize_global_policy(cfg: Config, params, pol_prior, X: jax.Array, key: j
     Returns:
       (LinearGaussianPolicy [M, T, ...], updated PolicyPrior [M]).
     """
-    pol = make_global_policy(cfg)
+    pol = policies.for_config(cfg)
     mean = lambda x: pol.mean(params, x)  # noqa: E731
-    M = X.shape[0]
     pol_mu = jax.vmap(jax.vmap(jax.vmap(mean)))(X)
     pol_sig = jax.vmap(jax.vmap(jax.vmap(lambda x: pol.covariance(params, x))))(X)
-    keys = jax.random.split(key, M)
+    keys = jax.random.split(key, X.shape[0])
     if cfg.policy_linearization == "autodiff":
         # Exact expansion around the per-step sample mean states; the prior is not needed.
         pol_K, pol_k, pol_S = jax.vmap(lambda x, sg: linearize.linearize_policy_autodiff(
@@ -204,7 +205,41 @@ def linearize_global_policy(cfg: Config, params, pol_prior, X: jax.Array, key: j
     return jax.vmap(lqr.policy_from_covariance)(pol_K, pol_k, pol_S), pol_prior
 
 
-def sstep_data(traj: LinearGaussianPolicy, X: jax.Array, marginals=None) -> policies.SStepData:
+def anchor_stage(cfg: Config, state: TrainState, samples: Trajectories, first: Array,
+                 key_catch_up: Array, key_lin: Array) -> tuple[PolicyState | None, LinearGaussianPolicy, Array]:
+    """The KL anchor of the C-step: the previous local controllers (trajectory optimisation), or
+    the global policy linearised around the samples (MDGPS). In MDGPS's first iteration the
+    policy first catches up with the initial controllers (toolbox §0.4).
+
+    Returns: (PolicyState or None, anchor LinearGaussianPolicy [M, T, ...], [] bool: the
+    catch-up S-step's parameters are finite).
+    """
+    if state.policy is None:
+        return None, state.traj, jnp.asarray(True)
+
+    def catch_up(params):
+        new, _, ok = fit_policy(cfg, params, sstep_data(state.traj, samples.X), key_catch_up)
+        return new, ok
+
+    params, ok = jax.lax.cond(first, catch_up, lambda p: (p, jnp.asarray(True)), state.policy.params)
+    anchor, prior = linearize_global_policy(cfg, params, state.policy.prior, samples.X, key_lin)
+    return PolicyState(params=params, prior=prior), anchor, ok
+
+
+def c_step(cfg: Config, dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolicy,
+           eta: Array, step_mult: Array):
+    """η search under KL(p_new ‖ anchor) ≤ ε = kl_step·step_mult·T, per condition.
+
+    Returns: (new controllers [M, T, ...], their Marginals [M, T, ...], η [M], KL [M], ε [M],
+    lqr.EtaSearchInfo [M]).
+    """
+    epsilon = step_size.kl_epsilon(step_mult, cfg.task.T, cfg.step)
+    traj, marginals, eta, kl, info = jax.vmap(
+        lambda d, c, a, e0, eps: lqr.eta_search(d, c, a, e0, eps, cfg.lqr))(dyn, cost, anchor, eta, epsilon)
+    return traj, marginals, eta, kl, epsilon, info
+
+
+def sstep_data(traj: LinearGaussianPolicy, X: Array, marginals: Marginals | None = None) -> policies.SStepData:
     """S-step data set from the (new) local controllers (mdgps-toolbox.md §1.4, gmr-method §3.6).
 
     Rows are the sampled states (and, when ``marginals`` is given, also the forward-pass mean
@@ -235,180 +270,109 @@ def sstep_data(traj: LinearGaussianPolicy, X: jax.Array, marginals=None) -> poli
                               K=K, k=k, state_cov=state_cov)
 
 
-def _run_sstep(cfg: Config, params, data: policies.SStepData, key):
-    new_params, info = sstep_lib.sstep(make_global_policy(cfg), params, data, key, cfg.sstep)
+def fit_policy(cfg: Config, params, data: policies.SStepData, key: Array):
+    """One S-step of the configured policy: (new params, last epoch's loss [], [] bool finite)."""
+    new_params, info = sstep_lib.sstep(policies.for_config(cfg), params, data, key, cfg.sstep)
     return new_params, info["loss"][-1], info["finite"]
 
 
-def _iteration(cfg: Config, state: TrainState, key: jax.Array, first: bool | None):
-    """One iteration; ``first`` static True/False for the first/later iterations, None to decide
-    from ``state.iteration`` at run time, or a boolean scalar array decided at run time.
-
-    All matrix products run at full float32 precision: the GPU's default (TF32 inputs, ~1e-3
-    relative error) breaks the Cholesky factorisations of the dynamics fit and the LQR.
-    """
-    with jax.default_matmul_precision("highest"):
-        return _iteration_body(cfg, state, key, first)
-
-
-def _iteration_body(cfg: Config, state: TrainState, key: jax.Array, first: bool | None):
-    T = cfg.task.T
-    x0 = tasks.initial_states(cfg.task, state.eta.dtype)
-    M = x0.shape[0]
-    k_sample, k_dyn, k_lin, k_s0, k_s1 = jax.random.split(key, 5)
-    with_policy = uses_policy(cfg)
-    # `first`: a Python bool (static branch), None (decided per seed from state.iteration), or a
-    # boolean scalar array (decided at run time, shared by all seeds: a real lax.cond under vmap).
-    static = first if isinstance(first, bool) else None
-    is_first = state.iteration == 0 if first is None else jnp.asarray(first)
-
-    # 1. Sample the local controllers (or, with sample_on_policy after the first iteration, π).
-    if with_policy and cfg.sample_on_policy and static is not True:
-        on_pol = lambda: sample(cfg, policy_sampling_fn(cfg, state.policy), x0, k_sample, cfg.num_samples)  # noqa: E731
-        off_pol = lambda: sample(cfg, state.traj, x0, k_sample, cfg.num_samples)  # noqa: E731
-        trajs = on_pol() if static is False else jax.lax.cond(is_first, off_pol, on_pol)
-    else:
-        trajs = sample(cfg, state.traj, x0, k_sample, cfg.num_samples)
-
-    # 2. Cost: per-sample costs and the sample-averaged quadratic expansion.
-    cost_fn = tasks.make_cost(cfg)
-    cst, cs = jax.vmap(lambda X, U: cost_lib.quadratic_expansion(cost_fn, X, U))(trajs.X, trajs.U)
-    cs_total = jnp.mean(jnp.sum(cs, axis=-1), axis=-1)  # [M]
-
-    # 3. Dynamics: refresh each condition's prior with its samples, then fit per time step.
-    dyn_keys = jax.random.split(k_dyn, M)
-    prior = jax.vmap(lambda p, k, X, U: dyn_lib.update_dynamics_prior(p, k, X, U, cfg.dynamics))(
-        state.dyn_prior, dyn_keys, trajs.X, trajs.U)
-    dyn = jax.vmap(lambda p, X, U: dyn_lib.fit_dynamics(p, X, U, cfg.dynamics))(prior, trajs.X, trajs.U)
-
-    params, pol_prior, sstep_ok = state.policy, state.pol_prior, jnp.asarray(True)
-    if with_policy:
-        # 4. First iteration only: catch the policy up with the initial controllers (toolbox §0.4).
-        def catch_up(p):
-            new_p, _, ok = _run_sstep(cfg, p, sstep_data(state.traj, trajs.X), k_s0)
-            return new_p, ok
-        if static is True:
-            params, sstep_ok = catch_up(params)
-        elif static is None:
-            params, sstep_ok = jax.lax.cond(is_first, catch_up, lambda p: (p, jnp.asarray(True)), params)
-        # 5. Linearise the global policy around the samples: the KL anchor of the C-step.
-        anchor, pol_prior = linearize_global_policy(cfg, params, state.pol_prior, trajs.X, k_lin)
-        # 6. Step size: previous linearisation vs the executed controllers (§1.3).
-        prev_laplace = _laplace_total(state.prev_pol_lin, state.prev_dyn, state.prev_cost)
-        cur_laplace = _laplace_total(anchor, dyn, cst)
-    else:
-        # Trajectory optimisation: the anchor is the previous controller.
-        anchor = state.traj
-        prev_laplace = _laplace_total(state.prev_traj, state.prev_dyn, state.prev_cost)
-        cur_laplace = _laplace_total(state.traj, dyn, cst)
-    prev_predicted = _laplace_total(state.traj, state.prev_dyn, state.prev_cost)
-    if cfg.step.step_rule == "laplace":
-        predicted, actual = prev_laplace - prev_predicted, prev_laplace - cur_laplace
-    else:
-        predicted, actual = state.prev_cs - prev_predicted, state.prev_cs - cs_total
-    adjusted = lqr.step_multiplier(predicted, actual, state.step_mult, cfg.step)
-    step_mult = state.step_mult if static is True else jnp.where(is_first, state.step_mult, adjusted)
-
-    # 7. C-step: η search under KL(p_new ‖ anchor) ≤ ε, per condition.
-    epsilon = lqr.kl_epsilon(step_mult, T, cfg.step)
-    new_traj, marginals, eta, kl, info = jax.vmap(
-        lambda d, c, a, e0, eps: lqr.eta_search(d, c, a, e0, eps, cfg.lqr))(
-            dyn, cst, anchor, state.eta, epsilon)
-
-    # Learning curve: noiseless execution of the new local controllers ("LQR base layer").
-    eval_traj, mse = evaluate_controllers(cfg, new_traj, x0)
-    metrics = {
-        "sample_cost": cs_total,
-        "sample_costs": jnp.sum(cs, axis=-1),  # [M, N]
-        "final_state_mse_lqr": mse,
-        "kl": kl,
-        "epsilon": epsilon,
-        "eta": eta,
-        "step_mult": step_mult,
-        "predicted_improvement": predicted,
-        "actual_improvement": actual,
-        "eta_iterations": info.iterations,
-        "eta_converged": info.converged,
-        "eval_ee": eval_traj.ee,
-        "eval_final_x": eval_traj.X[:, -1],
-        "sample_final_x": trajs.X[:, :, -1],
-    }
-    ok = info.ok & jnp.all(jnp.isfinite(new_traj.K), axis=(1, 2, 3))
-
-    if with_policy:
-        # 8. S-step: fit the policy to the new controllers at the sampled states (GMR: also at
-        #    the forward-pass means, with their state covariances).
-        data = sstep_data(new_traj, trajs.X, marginals if cfg.algorithm == "gmr" else None)
-        params, sstep_loss, finite = _run_sstep(cfg, params, data, k_s1)
-        sstep_ok = sstep_ok & finite
-        pol_eval, pol_mse = evaluate_controllers(cfg, policy_mean_fn(cfg, params), x0)
-        metrics.update({
-            "final_state_mse_policy": pol_mse,
-            "sstep_loss": jnp.broadcast_to(sstep_loss, (M,)),
-            "policy_eval_ee": pol_eval.ee,
-            "policy_eval_final_x": pol_eval.X[:, -1],
-        })
-        ok = ok & sstep_ok
-    metrics["ok"] = ok
-
-    new_state = TrainState(
-        iteration=state.iteration + 1, traj=new_traj, prev_traj=state.traj, eta=eta,
-        step_mult=step_mult, dyn_prior=prior, prev_dyn=dyn, prev_cost=cst, prev_cs=cs_total,
-        policy=params, pol_prior=pol_prior, prev_pol_lin=anchor if with_policy else None)
-    return new_state, metrics
+def s_step(cfg: Config, policy: PolicyState | None, traj: LinearGaussianPolicy, samples: Trajectories,
+           marginals: Marginals, key: Array) -> tuple[PolicyState | None, Array, Array]:
+    """Fit the global policy to the new controllers at the sampled states (GMR: also at the
+    forward-pass means, with their state covariances). Returns (PolicyState, loss, ok)."""
+    if policy is None:
+        return None, jnp.zeros(()), jnp.asarray(True)
+    with_marginals = policies.spec_for(cfg).sstep_marginals
+    data = sstep_data(traj, samples.X, marginals if with_marginals else None)
+    params, loss, ok = fit_policy(cfg, policy.params, data, key)
+    return policy._replace(params=params), loss, ok
 
 
-def iteration(cfg: Config, state: TrainState, key: jax.Array, first: jax.Array | None = None):
+def learning_curve(cfg: Config, traj: LinearGaussianPolicy, policy: PolicyState | None,
+                   x0: Array) -> dict:
+    """Noiseless execution from the training states of the new local controllers (the "LQR base
+    layer") and of the global policy: their final-state MSE [M], end-effector paths and final
+    states."""
+    out, mse = evaluate.controllers_mse(cfg, traj, x0)
+    curve = {"final_state_mse_lqr": mse, "eval_ee": out.ee, "eval_final_x": out.X[:, -1]}
+    if policy is not None:
+        mean = policies.mean_fn(policies.for_config(cfg), policy.params)
+        pol_out, pol_mse = evaluate.controllers_mse(cfg, mean, x0)
+        curve.update({"final_state_mse_policy": pol_mse, "policy_eval_ee": pol_out.ee,
+                      "policy_eval_final_x": pol_out.X[:, -1]})
+    return curve
+
+
+# ---------------------------------------------------------------------------------------------
+# The iteration and the whole run
+
+
+def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = None):
     """One GPS iteration (pure; jit with ``cfg`` static).
-
-    The first iteration of MDGPS/GMR also runs the catch-up S-step on the initial controllers,
-    decided at run time by a ``lax.cond``: from ``state.iteration`` when ``first`` is None (under
-    ``vmap`` over seeds that predicate is batched, so both branches are computed), or from
-    ``first``, a boolean scalar that ``vmap`` leaves unbatched (``in_axes=None``), so that only
-    the taken branch runs and one compiled program serves every iteration (the CLI's choice).
-    ``train`` decides it statically instead (``iteration_static``).
 
     Args:
       cfg: configuration (static).
       state: TrainState.
       key: PRNG key of this iteration.
-      first: optional boolean scalar, True for the first iteration.
+      first: [] bool, True for the first iteration; default ``state.iteration == 0``. Under
+        ``vmap`` over seeds pass it unbatched (``in_axes=None``): a batched predicate makes
+        ``lax.cond`` compute both branches (the catch-up S-step in every iteration).
     Returns:
-      (new state, metrics dict of arrays, [M] where per condition).
+      (new state, metrics: dict of arrays, [M] where per condition).
+
+    All matrix products run at full float32 precision: the GPU's default (TF32 inputs, ~1e-3
+    relative error) breaks the Cholesky factorisations of the dynamics fit and the LQR.
     """
-    if isinstance(first, bool):
-        raise TypeError("iteration: pass first as an array (jnp.asarray(True)); for a static "
-                        "Python bool use iteration_static")
-    return _iteration(cfg, state, key, first)
+    with jax.default_matmul_precision("highest"):
+        first = state.iteration == 0 if first is None else jnp.asarray(first)
+        x0 = tasks.initial_states(cfg.task, state.eta.dtype)
+        k_sample, k_dyn, k_lin, k_catch_up, k_sstep = jax.random.split(key, 5)
+
+        samples = sample_stage(cfg, state, x0, k_sample, first)
+        cost, sample_costs = cost_stage(cfg, samples)
+        dyn_prior, dyn = dynamics_stage(cfg, state.dyn_prior, samples, k_dyn)
+        policy, anchor, catch_up_ok = anchor_stage(cfg, state, samples, first, k_catch_up, k_lin)
+        model = LocalModel(anchor=anchor, dyn=dyn, cost=cost, sample_cost=jnp.mean(sample_costs, axis=-1))
+        step_mult, predicted, actual = step_size.update(cfg.step, state.step_mult, first, state.prev,
+                                                        state.traj, model)
+        traj, marginals, eta, kl, epsilon, info = c_step(cfg, dyn, cost, anchor, state.eta, step_mult)
+        policy, sstep_loss, sstep_ok = s_step(cfg, policy, traj, samples, marginals, k_sstep)
+
+        ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & catch_up_ok & sstep_ok
+        metrics = {
+            "sample_cost": model.sample_cost, "sample_costs": sample_costs, "kl": kl,
+            "epsilon": epsilon, "eta": eta, "step_mult": step_mult,
+            "predicted_improvement": predicted, "actual_improvement": actual,
+            "eta_iterations": info.iterations, "eta_converged": info.converged,
+            "sample_final_x": samples.X[:, :, -1], "ok": ok,
+            **learning_curve(cfg, traj, policy, x0)}
+        if policy is not None:
+            metrics["sstep_loss"] = jnp.broadcast_to(sstep_loss, ok.shape)
+        new_state = TrainState(iteration=state.iteration + 1, traj=traj, eta=eta, step_mult=step_mult,
+                               dyn_prior=dyn_prior, prev=model, policy=policy)
+        return new_state, metrics
 
 
-def iteration_static(cfg: Config, state: TrainState, key: jax.Array, first: bool):
-    """``iteration`` with the first-iteration branch chosen statically (``first`` is static)."""
-    return _iteration(cfg, state, key, first)
+def iteration_keys(key: Array, iterations: int) -> tuple[Array, Array]:
+    """The (init key, per-iteration keys [iterations]) that ``train`` derives from ``key``.
+
+    ``jax.random.split`` is prefix-stable, so the keys of the first n iterations do not depend
+    on ``iterations``: a resumable loop that uses them equals ``train``, and a run extended to
+    more iterations continues with the keys a longer run would have used.
+    """
+    k_init, k_iter = jax.random.split(key)
+    return k_init, jax.random.split(k_iter, iterations)
 
 
-def train(cfg: Config, key: jax.Array):
+def train(cfg: Config, key: Array):
     """A whole run: ``init`` then ``cfg.iterations`` iterations in a ``lax.scan``.
 
-    Pure in ``key``: jit with ``cfg`` static and ``jax.vmap`` over keys to train many seeds.
+    Pure in ``key``: jit with ``cfg`` static and ``jax.vmap`` over keys to train many seeds (the
+    first-iteration flag is a scan input, unbatched, so each iteration runs one branch).
 
     Returns:
       (final TrainState, metrics history: each entry with a leading iteration axis).
     """
     k_init, keys = iteration_keys(key, cfg.iterations)
-    state = init(cfg, k_init)
-    # The first iteration is peeled off so that its catch-up S-step is a static branch.
-    state, first_metrics = _iteration(cfg, state, keys[0], True)
-    state, rest = jax.lax.scan(lambda s, k: _iteration(cfg, s, k, False), state, keys[1:])
-    history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first_metrics, rest)
-    return state, history
-
-
-def iteration_keys(key: jax.Array, iterations: int) -> tuple[jax.Array, jax.Array]:
-    """The (init key, per-iteration keys) that ``train`` derives from ``key``.
-
-    The CLI's resumable loop uses the same keys so that an interrupted and resumed run equals an
-    uninterrupted ``train``.
-    """
-    k_init, k_iter = jax.random.split(key)
-    return k_init, jax.random.split(k_iter, iterations)
+    firsts = jnp.arange(cfg.iterations) == 0
+    return jax.lax.scan(lambda s, kf: iteration(cfg, s, *kf), init(cfg, k_init), (keys, firsts))

@@ -1,0 +1,264 @@
+"""The command line shared by the studies (``python -m experiments.reach``, …): arguments →
+configurations → ``gmr_jax.runner`` → ``experiments.report``.
+
+Every expected failure (a bad argument, a corrupt or mismatched checkpoint, a run that diverges,
+an MJCF error, a full disk, Ctrl-C) ends with one line on stderr naming the problem and the way
+out, and a non-zero exit code; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import pathlib
+import platform
+import signal
+import sys
+import time
+import traceback
+
+from gmr_jax import checkpoint, config, policies, runner, tasks
+from gmr_jax.sim import MJCFError
+
+# Fewest parallel rollouts for which "auto" picks MJX on a GPU. On an H100 in float64 a call of
+# 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
+# 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
+MJX_MIN_ROLLOUTS = 32
+# Iteration programs compiled at once (--compile-jobs): 2 and 4 were equally fast on an H100 and
+# 4 was slower on the 2-core CPU (benchmarks/RESULTS.md).
+DEFAULT_COMPILE_JOBS = 2
+DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
+    pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
+# Exit codes: 1 a run failed, 2 bad usage (argparse's), 130 interrupted (128 + SIGINT).
+EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 1, 2, 130
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+        config.check_positive_int("value", value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    return value
+
+
+def _nonnegative_int(text: str) -> int:
+    value = int(text) if text.lstrip("-").isdigit() else -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer ≥ 0, got {text!r}")
+    return value
+
+
+def build_parser(task: tasks.Task, description: str | None = None) -> argparse.ArgumentParser:
+    base = task.default_config(task.default_scenarios[0])
+    p = argparse.ArgumentParser(prog=f"python -m experiments.{task.name}", description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--algorithm", default="gmr,mdgps",
+                   help=f"comma-separated list of {tuple(policies.ALGORITHMS)} (default: %(default)s)")
+    p.add_argument("--scenario", default=",".join(task.default_scenarios),
+                   help=f"comma-separated list of {tuple(task.scenarios)} (default: %(default)s)")
+    p.add_argument("--iterations", type=int, default=base.iterations, help="GPS iterations (default: %(default)s)")
+    p.add_argument("--samples", type=int, default=base.num_samples,
+                   help="samples per condition per iteration (default: %(default)s)")
+    p.add_argument("--seeds", type=_positive_int, default=1, help="seeds trained in parallel (default: 1)")
+    p.add_argument("--first-seed", type=int, default=0, help="first seed (default: 0)")
+    p.add_argument("--T", type=int, default=base.task.T, help="horizon (default: %(default)s)")
+    p.add_argument("--backend", default="auto", choices=config.BACKENDS,
+                   help="physics backend (default: %(default)s: C MuJoCo on a CPU; on a GPU, MJX "
+                        f"when a rollout batch holds at least {MJX_MIN_ROLLOUTS} rollouts (seeds × "
+                        "conditions × samples), C MuJoCo below that, where MJX's per-step latency "
+                        "dominates; the choice is written to config.json)")
+    p.add_argument("--out", default=f"results/{task.name}", help="output folder (default: %(default)s)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest intact checkpoints in --out (same settings; a "
+                        "larger --iterations extends finished runs)")
+    p.add_argument("--precision", default="float64", choices=("float32", "float64"),
+                   help="floating-point precision of the whole run (default: %(default)s; float32 "
+                        "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument("--jobs", type=_nonnegative_int, default=0,
+                   help="runs (scenario × algorithm) trained side by side: they compile concurrently "
+                        "and share the device (default 0: all of them)")
+    p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
+                   help="iteration programs compiled at once (default: %(default)s). XLA spreads "
+                        "one compilation over the cores, so more at once mostly slow each other")
+    p.add_argument("--autotune", action="store_true",
+                   help="let XLA time kernel variants on the GPU while compiling. Off by default: "
+                        "runs that compile while others train make those timings slow and noisy, "
+                        "and kernels chosen by timing make results differ from call to call")
+    p.add_argument("--compilation-cache", default=DEFAULT_COMPILATION_CACHE, metavar="DIR",
+                   help="persistent XLA compilation cache: a repeated run skips most of its "
+                        "compilation (default: $JAX_COMPILATION_CACHE_DIR or %(default)s; "
+                        "'none' disables it)")
+    p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
+                   help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
+                        "or --set sstep__epochs=100 (repeatable; values are Python literals)")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
+    return p
+
+
+def _overrides(p: argparse.ArgumentParser, items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name.strip():
+            p.error(f"--set {item!r}: expected GROUP__FIELD=VALUE")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text  # a bare word, e.g. --set gmr__exploration=fixed
+        out[name.strip()] = value
+    return out
+
+
+def resolve_backend(args, task: tasks.Task) -> str:
+    """``--backend``: "auto" is "mujoco" on a CPU, and on a GPU "mjx" when the sampling batch
+    (seeds × conditions × samples, the largest scenario) reaches ``MJX_MIN_ROLLOUTS``."""
+    import jax
+
+    if args.backend != "auto":
+        return args.backend
+    if jax.default_backend() != "gpu":
+        return "mujoco"
+    conditions = max(len(task.scenarios[s]) for s in args.scenarios if s in task.scenarios)
+    return "mjx" if args.seeds * conditions * args.samples >= MJX_MIN_ROLLOUTS else "mujoco"
+
+
+def parse_args(task_name: str, argv=None, description: str | None = None) -> argparse.Namespace:
+    """The arguments, with ``args.configs``: {(scenario, algorithm): Config}. Every setting is
+    validated by the configuration itself; a bad one ends argparse's way (usage, exit 2)."""
+    task = tasks.get(task_name)
+    p = build_parser(task, description)
+    args = p.parse_args(argv)
+    args.task = task
+    args.overrides = _overrides(p, args.set)
+    args.algorithms = [a.strip() for a in args.algorithm.split(",") if a.strip()]
+    args.scenarios = [s.strip() for s in args.scenario.split(",") if s.strip()]
+    dedicated = {"iterations": "--iterations", "num_samples": "--samples", "task__T": "--T",
+                 "sim__backend": "--backend", "algorithm": "--algorithm", "task__scenario": "--scenario"}
+    clash = sorted(dedicated[k] for k in set(dedicated) & set(args.overrides))
+    if clash:
+        p.error(f"--set: use {', '.join(clash)} for these settings")
+    try:
+        backend = resolve_backend(args, task)
+        args.configs = {(s, a): config.make(task.name, s, a, iterations=args.iterations,
+                                            num_samples=args.samples, task__T=args.T,
+                                            sim__backend=backend, **args.overrides)
+                        for s in args.scenarios for a in args.algorithms}
+    except (ValueError, TypeError) as err:
+        p.error(str(err))
+    if not args.configs:
+        p.error("no runs: give at least one --scenario and one --algorithm")
+    return args
+
+
+def progress_printer(prefix_runs: bool):
+    """A runner progress callback printing one line per iteration (and the runner's messages)."""
+    def mean(m, name):
+        return float(m[name].mean()) if name in m else float("nan")
+
+    def show(event: dict) -> None:
+        label = f"[{event['run']}]" if prefix_runs else ""
+        if "message" in event:
+            print(f"{label}  {event['message']}", flush=True)
+            return
+        m = event["metrics"]
+        line = (f"{label}  iter {event['iteration']:2d}/{event['iterations']}  cost {mean(m, 'sample_cost'):10.3f}"
+                f"  KL {mean(m, 'kl'):8.3f}  eps {mean(m, 'epsilon'):7.2f}  eta {mean(m, 'eta'):9.3g}"
+                f"  step {mean(m, 'step_mult'):6.3f}  mse(lqr) {mean(m, 'final_state_mse_lqr'):.4g}")
+        if "final_state_mse_policy" in m:
+            line += f"  mse(policy) {mean(m, 'final_state_mse_policy'):.4g}"
+        print(line, flush=True)
+    return show
+
+
+def _setup_jax(args) -> None:
+    flags = os.environ.get("XLA_FLAGS", "")
+    if not args.autotune and "xla_gpu_autotune_level" not in flags:
+        # Read when the backend starts (the first device query), so set before it.
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_gpu_autotune_level=0".strip()
+    import jax
+
+    jax.config.update("jax_enable_x64", args.precision == "float64")
+    if args.compilation_cache != "none":
+        jax.config.update("jax_compilation_cache_dir", args.compilation_cache)
+
+
+def _stop_on_signals(scheduler: runner.Scheduler):
+    """Ctrl-C / SIGTERM: the runs finish the iteration in flight and write its checkpoint; a
+    second Ctrl-C aborts at once."""
+    def handler(signum, frame):
+        print(f"\n{signal.Signals(signum).name}: stopping after the iteration in flight "
+              "(Ctrl-C again aborts without its checkpoint)", file=sys.stderr, flush=True)
+        scheduler.request_stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, handler)
+
+
+def run_study(args, t_start: float) -> int:
+    """Train, evaluate and report (the part of ``main`` after the arguments)."""
+    import jax
+
+    from experiments import report
+
+    out = pathlib.Path(args.out)
+    if not args.resume:
+        runner.check_fresh([runner.run_folder(out, *key) for key in args.configs])
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    device = f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}"
+    print(f"gmr-jax {args.task.name} study -> {out}  (device {device}, seeds {seeds})")
+    (out / "config.json").write_text(json.dumps({
+        "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
+        "seeds": seeds, "device": device, "precision": args.precision,
+        "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(),
+        "jax": jax.__version__,
+        "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in args.configs.items()}}, indent=2))
+    for (scenario, algorithm), cfg in args.configs.items():
+        print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
+              f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
+    with runner.Scheduler(args.compile_jobs) as scheduler:
+        _stop_on_signals(scheduler)
+        plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
+        t_runs = time.perf_counter()
+        runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
+                              scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1))
+        total = time.perf_counter() - t_runs
+        if plotting is not None:
+            plotting.result()
+            report.plot_all(out, args.configs, runs)
+    results = report.write_results(out, args.configs, runs, seeds, device, total,
+                                   command_s=time.perf_counter() - t_start)
+    report.write_summary(out / "summary.md", args.configs, runs, seeds, device, total, results)
+    print((out / "summary.md").read_text())
+    return 0
+
+
+def main(task_name: str, argv=None, description: str | None = None, t_start: float | None = None) -> int:
+    """``python -m experiments.<task_name>``: returns the exit code."""
+    t_start = time.perf_counter() if t_start is None else t_start
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parse_args(task_name, argv, description)
+    args.argv = argv
+    prog = f"python -m experiments.{task_name}"
+    _setup_jax(args)
+    try:
+        return run_study(args, t_start)
+    except runner.Interrupted as err:
+        print(f"{prog}: interrupted: {err}. Continue with: {prog} {' '.join(argv)}"
+              f"{'' if args.resume else ' --resume'}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:
+        print(f"{prog}: aborted; the checkpoints written before are intact (--resume continues)",
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (runner.FolderTaken, runner.TrainingError, checkpoint.CheckpointError, MJCFError,
+            FileNotFoundError, OSError, ValueError) as err:
+        if args.debug:
+            traceback.print_exc()
+        print(f"{prog}: error: {err}", file=sys.stderr)
+        return EXIT_USAGE if isinstance(err, runner.FolderTaken) else EXIT_FAILED

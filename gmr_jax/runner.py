@@ -1,0 +1,440 @@
+"""The resumable training loop: run configurations for given seeds into folders.
+
+:func:`run` trains one configuration for several seeds in parallel (``jax.vmap`` over PRNG
+keys), one jitted iteration at a time, checkpoints the whole training state atomically after
+every iteration, and reports through a callback. With ``resume=True`` it continues from the
+newest intact checkpoint (a corrupt one is renamed and reported, never deleted), and a run whose
+configuration asks for more iterations than its checkpoints hold is extended; any other changed
+setting is refused, naming the fields. An interrupted and resumed run equals an uninterrupted
+one (``mdgps.iteration_keys``).
+
+:func:`run_all` trains several configurations side by side in one process. A :class:`Scheduler`
+orders their Python tracing, bounds how many XLA compilations run at once, keeps the compiled
+programs for reuse, and carries the stop request of Ctrl-C / SIGTERM: every run then finishes
+the iteration in flight, writes its checkpoint and raises :class:`Interrupted`.
+
+Progress is reported through ``progress_fn(event)``, an event being a dict with ``run`` (the
+run's label) and either ``iteration``, ``iterations`` and ``metrics`` (host numpy arrays, after
+every iteration) or ``message`` (resumed, a corrupt checkpoint set aside). Nothing here prints.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import dataclasses
+import json
+import pathlib
+import threading
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gmr_jax import checkpoint, config, evaluate, mdgps, policies, tasks
+
+ProgressFn = Callable[[dict], None]
+
+
+class TrainingError(RuntimeError):
+    """A run cannot go on: a C-step or S-step produced non-finite values or η hit its limit."""
+
+
+class Interrupted(RuntimeError):
+    """The runs stopped on request (Ctrl-C, SIGTERM) after writing their checkpoints."""
+
+
+class FolderTaken(RuntimeError):
+    """A fresh run was asked into a folder that already holds checkpoints."""
+
+
+def jsonable(tree):
+    """Nested numpy/jax values → plain JSON types (non-finite floats become NaN)."""
+    if isinstance(tree, dict):
+        return {k: jsonable(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return [jsonable(v) for v in tree]
+    if tree is None or isinstance(tree, (str, bool, int)):
+        return tree
+    arr = np.asarray(tree)
+    if arr.dtype == bool:
+        return arr.tolist()
+    if np.issubdtype(arr.dtype, np.integer):
+        return arr.astype(int).tolist()
+    return np.where(np.isfinite(arr), arr, np.nan).astype(float).tolist() if arr.ndim else float(arr)
+
+
+def _host(tree):
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+class Timer(dict):
+    """Wall seconds per phase name (``with timer("compile_s"): ...``); repeated phases add up."""
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self[name] = self.get(name, 0.0) + time.perf_counter() - t
+
+
+class TracingTurns:
+    """Side-by-side runs trace one at a time, in the order of their tickets.
+
+    Tracing and lowering are Python work under the GIL: concurrent traces only delay each other.
+    One at a time, the first run's compilation (which releases the GIL) starts sooner, and with
+    tickets the runs that train longest go first. ``ticket=None`` only excludes the others.
+    """
+
+    def __init__(self):
+        self._cv = threading.Condition()
+        self._next = 0
+        self._busy = False
+
+    def reset(self):
+        with self._cv:
+            self._next = 0
+
+    @contextlib.contextmanager
+    def __call__(self, ticket: int | None):
+        with self._cv:
+            self._cv.wait_for(lambda: not self._busy and (ticket is None or self._next == ticket))
+            self._busy = True
+        try:
+            yield
+        finally:
+            with self._cv:
+                self._busy = False
+                if ticket is not None:
+                    self._next += 1
+                self._cv.notify_all()
+
+
+class Scheduler:
+    """Compile scheduling and the stop request of runs trained in one process.
+
+    Attributes:
+      tracing: :class:`TracingTurns` of the runs.
+      compile_slots: at most ``compile_jobs`` iteration programs compile at once (XLA spreads one
+        compilation over the cores, so many at once mostly slow each other down).
+      programs: compiled iteration programs per (config, number of seeds): a resumed or
+        repeated run of the same configuration reuses its executable.
+      pool: background threads (initial states, robustness compilation, the caller's work).
+      stop: set by :meth:`request_stop` (e.g. from a signal handler); runs end after the
+        iteration in flight.
+    """
+
+    def __init__(self, compile_jobs: int = 2, workers: int = 8):
+        config.check_positive_int("compile_jobs", compile_jobs)
+        self.tracing = TracingTurns()
+        self.compile_slots = threading.BoundedSemaphore(compile_jobs)
+        self.programs: dict = {}
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gmr-jax")
+        self.stop = threading.Event()
+
+    def request_stop(self) -> None:
+        self.stop.set()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+# One jitted function each for the whole process: repeated and resumed runs of the same
+# configuration reuse the compiled executables. The first-iteration flag is a run-time scalar
+# shared by all seeds (``in_axes=None``): one program serves every iteration.
+init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
+step_fn = jax.jit(jax.vmap(mdgps.iteration, in_axes=(None, 0, 0, None)), static_argnums=0)
+
+
+def seed_keys(cfg: config.Config, seeds) -> tuple[jax.Array, jax.Array]:
+    """(init keys [S], iteration keys [S, iterations]) of the seeds, as ``mdgps.train`` uses them."""
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    return jax.vmap(lambda k: mdgps.iteration_keys(k, cfg.iterations))(keys)
+
+
+def initial_state(cfg: config.Config, seeds) -> mdgps.TrainState:
+    """The batched initial TrainState of the seeds (the template of their checkpoints)."""
+    return init_fn(cfg, seed_keys(cfg, seeds)[0])
+
+
+def _step_program(cfg, shapes, keys, timer: Timer, scheduler: Scheduler):
+    """``step_fn`` for ``cfg`` and this seed batch, traced and lowered (the caller compiles it
+    in a compile slot), or this process's compiled one if there is one."""
+    name = (cfg, keys.shape[0])
+    if name in scheduler.programs:
+        return scheduler.programs[name]
+    with timer("trace_s"):
+        traced = step_fn.trace(cfg, shapes, keys, jnp.asarray(True))
+    with timer("lower_s"):
+        lowered = traced.lower()
+    return lowered
+
+
+def _robustness_program(cfg: config.Config):
+    def both(p):  # the fixed random states and the disturbance sweep: one program
+        return evaluate.robustness(cfg, p), evaluate.disturbance_sweep(cfg, p)[:2]
+    return jax.jit(jax.vmap(both))
+
+
+def _lower_robustness(cfg: config.Config, params, timer: Timer):
+    with timer("robustness_trace_s"):
+        traced = _robustness_program(cfg).trace(params)
+    with timer("robustness_lower_s"):
+        return traced.lower()
+
+
+def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, program=None) -> dict:
+    """Robustness of every seed's policy (leading seed axis of ``params``): the task's fixed
+    random states and its disturbance sweep. ``program``: the compiled robustness program, or a
+    future of it (default: compiled here)."""
+    timer = Timer() if timer is None else timer
+    if program is None:
+        program = _lower_robustness(cfg, params, timer)
+        with timer("robustness_compile_s"):
+            program = program.compile()
+    if isinstance(program, concurrent.futures.Future):
+        with timer("robustness_wait_s"):
+            program = program.result()
+    with timer("robustness_run_s"):
+        rob, (rate, rate_loose) = _host(program(params))
+    radii = [float(r) for r in tasks.of(cfg).sweep_radii]
+    return {"robustness": rob._asdict(), "sweep": {"radii": radii, "success_rate": np.asarray(rate),
+                                                     "success_rate_loose": np.asarray(rate_loose)}}
+
+
+def _set_aside(ckpt_dir: pathlib.Path, step: int) -> pathlib.Path:
+    """Rename checkpoint ``step`` to ``<step>.corrupt[.n]`` (kept for inspection, invisible to
+    the checkpoint manager)."""
+    src = ckpt_dir / str(step)
+    dst = ckpt_dir / f"{step}.corrupt"
+    n = 1
+    while dst.exists():
+        dst = ckpt_dir / f"{step}.corrupt.{n}"
+        n += 1
+    src.rename(dst)
+    return dst
+
+
+def _restore(cfg: config.Config, seeds, ckpt_dir: pathlib.Path, template, report: Callable[[str], None]):
+    """(state, history) from the newest intact checkpoint, or (None, []) if there is none.
+
+    Corrupt checkpoints are set aside (renamed) and reported; a checkpoint written with other
+    settings than ``cfg`` — except fewer iterations, which extends the run — raises
+    ``checkpoint.CheckpointError`` naming the fields.
+    """
+    for step in reversed(checkpoint.all_steps(ckpt_dir)):
+        try:
+            stored = checkpoint.read_metadata(ckpt_dir, step)
+            done = len(stored.get("history", []))
+            planned = stored.get("config", {}).get("iterations", cfg.iterations)
+            if done > cfg.iterations:
+                raise checkpoint.CheckpointError(
+                    f"{ckpt_dir} holds {done} iterations, more than iterations={cfg.iterations}; "
+                    f"resume with at least {done} iterations")
+            expect = {"config": config.to_dict(dataclasses.replace(cfg, iterations=planned)),
+                      "seeds": list(seeds)}
+            state, saved = checkpoint.restore(ckpt_dir, template, step=step, expect=jsonable(expect))
+        except checkpoint.CorruptCheckpointError as err:
+            moved = _set_aside(ckpt_dir, step)
+            report(f"checkpoint step {step} is corrupt ({err}); set aside as {moved.name}")
+            continue
+        return state, [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
+    return None, []
+
+
+def check_fresh(run_dirs) -> None:
+    """Raise :class:`FolderTaken` if any of ``run_dirs`` already holds checkpoints (checked
+    before anything is written: a fresh run never replaces another run's files)."""
+    taken = [str(pathlib.Path(d) / "checkpoints") for d in run_dirs
+             if checkpoint.latest(pathlib.Path(d) / "checkpoints") is not None]
+    if taken:
+        raise FolderTaken(f"{', '.join(taken)} already hold(s) checkpoints; resume those runs "
+                          "(--resume), or choose another output folder")
+
+
+def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after: int | None = None,
+        progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
+        ticket: int | None = None, label: str = "") -> dict:
+    """Train ``cfg`` for ``seeds`` in parallel into ``run_dir``; checkpoint after every iteration.
+
+    Args:
+      cfg: the run's configuration.
+      seeds: integer seeds (PRNG keys ``jax.random.PRNGKey(seed)``), trained side by side.
+      run_dir: the run's folder (``config.json`` and ``checkpoints/`` are written there).
+      resume: continue from the newest intact checkpoint (or start if there is none); without
+        it, a folder that holds checkpoints raises :class:`FolderTaken`.
+      stop_after: end after this many iterations, as an interruption would.
+      progress_fn: receives the events described in the module docstring.
+      scheduler: shared by side-by-side runs (default: a private one).
+      ticket: this run's place in the tracing order of side-by-side runs (None: any).
+      label: the run's name in progress events.
+    Returns:
+      dict with ``history`` (stacked metrics, leading axes [iteration, seed, ...]),
+      ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies once every
+      iteration is done, ``robustness`` and ``sweep``.
+    Raises:
+      TrainingError: non-finite values or a failed η search; the checkpoints of the iterations
+        before are intact. Interrupted: the scheduler's stop was requested (checkpoint written).
+      checkpoint.CheckpointError: a checkpoint cannot be written or belongs to other settings.
+    """
+    if scheduler is None:
+        with Scheduler() as own:
+            return run(cfg, seeds, run_dir, resume=resume, stop_after=stop_after, progress_fn=progress_fn,
+                       scheduler=own, ticket=ticket, label=label)
+    report = (lambda text: progress_fn({"run": label, "message": text})) if progress_fn else (lambda text: None)
+    run_dir = pathlib.Path(run_dir)
+    ckpt_dir = run_dir / "checkpoints"
+    if not resume:
+        check_fresh([run_dir])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps({"seeds": list(seeds), "config": config.to_dict(cfg)}, indent=1))
+    k_init, it_keys = seed_keys(cfg, seeds)
+    meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
+    t0 = time.perf_counter()
+    timer = Timer()
+
+    def make_initial():
+        with timer("init_s"):
+            return jax.block_until_ready(init_fn(cfg, k_init))
+    state_future = scheduler.pool.submit(make_initial)
+    state, history = None, []
+    stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
+    step = robustness = None
+    with scheduler.tracing(ticket):
+        if resume:  # validated before compiling
+            state, history = _restore(cfg, seeds, ckpt_dir, state_future.result(), report)
+            if history:
+                report(f"resumed from iteration {len(history)}")
+        # The programs are built from the state's shapes while init runs beside them.
+        shapes = jax.eval_shape(lambda k: init_fn(cfg, k), k_init)
+        if len(history) < stop:
+            step = _step_program(cfg, shapes, it_keys[:, 0], timer, scheduler)
+        if policies.spec_for(cfg) is not None and stop == cfg.iterations:
+            robustness = _lower_robustness(cfg, shapes.policy.params, timer)
+    if isinstance(step, jax.stages.Lowered):
+        with scheduler.compile_slots, timer("compile_s"):
+            step = scheduler.programs[(cfg, len(seeds))] = step.compile()
+    if robustness is not None:
+        lowered = robustness
+
+        def compile_robustness():
+            with timer("robustness_compile_s"):
+                return lowered.compile()
+        robustness = scheduler.pool.submit(compile_robustness)
+    if state is None:
+        state = state_future.result()
+    state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta,
+                                              timer, scheduler, progress_fn, label, t0)
+    timer["iterations_s"] = float(np.sum(iteration_s))
+    stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
+    result = {"history": stacked, "iteration_s": iteration_s}
+    if robustness is not None and len(history) == cfg.iterations:
+        result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness))
+    result["wall_s"] = time.perf_counter() - t0
+    result["timing"] = dict(timer)
+    return result
+
+
+def _failure(cfg: config.Config, it: int, metrics: dict, ckpt_dir: pathlib.Path) -> TrainingError:
+    bad = np.argwhere(~np.asarray(metrics["ok"])).tolist()
+    return TrainingError(
+        f"iteration {it}: non-finite values or η at its limit in the C-step or S-step for "
+        f"(seed index, condition) {bad}; the checkpoints of iterations ≤ {it - 1} in {ckpt_dir} "
+        "are intact (try --precision float64, or other settings)")
+
+
+def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, timer, scheduler,
+                progress_fn, label, t0):
+    """Iterations ``len(history) … stop − 1``; each iteration's checkpoint is written while the
+    next iteration runs on the device (the step returns before the device has finished), and
+    an exception or a stop request still writes the last finished iteration's checkpoint."""
+    iteration_s, pending = [], None
+
+    def save(done: int, st, hist):
+        with timer("checkpoint_s"):
+            checkpoint.save(ckpt_dir, st, step=done, metadata={**meta, "history": [jsonable(h) for h in hist]})
+
+    try:
+        for it in range(len(history), stop):
+            if scheduler.stop.is_set():
+                break
+            t_it = time.perf_counter()
+            if not iteration_s:  # the run's start-up (waits for its turns and slots included)
+                timer["training_start_s"] = t_it - t0
+            new_state, metrics = step(state, it_keys[:, it], jnp.asarray(it == 0))
+            if pending is not None:
+                save(*pending)
+                pending = None
+            metrics = _host(metrics)
+            iteration_s.append(time.perf_counter() - t_it)
+            if not np.all(metrics["ok"]):
+                raise _failure(cfg, it + 1, metrics, ckpt_dir)
+            state = new_state
+            history.append(metrics)
+            pending = (it + 1, state, list(history))
+            if progress_fn is not None:
+                progress_fn({"run": label, "iteration": it + 1, "iterations": cfg.iterations,
+                             "metrics": metrics})
+    finally:
+        if pending is not None:
+            save(*pending)
+    if scheduler.stop.is_set() and len(history) < stop:
+        raise Interrupted(f"stopped after iteration {len(history)} of {cfg.iterations}; "
+                          f"its checkpoint is in {ckpt_dir}")
+    return state, history, iteration_s
+
+
+def run_folder(out, scenario: str, algorithm: str) -> pathlib.Path:
+    """The folder of one run inside a study's output folder ``out``."""
+    return pathlib.Path(out) / f"{scenario}_{algorithm}"
+
+
+def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
+            scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None) -> dict:
+    """Train several configurations side by side (threads), each into ``run_folder(out, …)``.
+
+    Args:
+      configs: {(scenario, algorithm): Config}.
+      seeds: the seeds of every run.
+      out: the study's output folder.
+      resume: see :func:`run`; without it every run folder must be free of checkpoints.
+      jobs: runs trained at once (0: all). Side by side, the runs' XLA compilations use several
+        cores and their iterations interleave on the device.
+      scheduler: default a private one with 2 compile jobs.
+      progress_fn: see the module docstring; events carry "scenario/algorithm" as ``run``.
+    Returns:
+      {(scenario, algorithm): the result of :func:`run`}.
+    Raises:
+      FolderTaken, TrainingError, Interrupted, checkpoint.CheckpointError (the first failing run's).
+    """
+    if not resume:
+        check_fresh([run_folder(out, *key) for key in configs])
+    if scheduler is None:
+        with Scheduler() as own:
+            return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
+                           progress_fn=progress_fn)
+    # The longest runs (a policy's S-step is the slowest, more conditions mean more data) trace
+    # first and reach the device first.
+    order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
+    scheduler.tracing.reset()
+    with concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool:
+        futures = {key: pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
+                                    progress_fn=progress_fn, scheduler=scheduler, ticket=i,
+                                    label=f"{key[0]}/{key[1]}")
+                   for i, key in enumerate(order)}
+        try:
+            return {key: futures[key].result() for key in configs}
+        except BaseException:
+            scheduler.request_stop()  # the other runs end after their iteration in flight
+            raise
+
