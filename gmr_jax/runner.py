@@ -164,33 +164,49 @@ def seed_keys(cfg: config.Config, seeds) -> tuple[jax.Array, jax.Array]:
 
 def initial_state(cfg: config.Config, seeds) -> mdgps.TrainState:
     """The batched initial TrainState of the seeds (the template of their checkpoints)."""
-    return init_fn(cfg, seed_keys(cfg, seeds)[0])
+    return init_fn(program_config(cfg), seed_keys(cfg, seeds)[0])
 
 
-def _step_program(cfg, shapes, keys, timer: Timer, scheduler: Scheduler):
-    """``step_fn`` for ``cfg`` and this seed batch, traced and lowered (the caller compiles it
-    in a compile slot), or this process's compiled one if there is one."""
-    name = (cfg, keys.shape[0])
+def program_config(cfg: config.Config) -> config.Config:
+    """``cfg`` as the compiled programs see it: an iteration, the initial state and the
+    robustness evaluation do not depend on the number of iterations, so runs that differ only
+    in it (an extended run, a shorter test) share their programs."""
+    return dataclasses.replace(cfg, iterations=1)
+
+
+def _robustness(cfg: config.Config, params):
+    """The task's fixed random states and its disturbance sweep: one program."""
+    return evaluate.robustness(cfg, params), evaluate.disturbance_sweep(cfg, params)[:2]
+
+
+robustness_fn = jax.jit(jax.vmap(_robustness, in_axes=(None, 0)), static_argnums=0)
+_PROGRAMS = {"step": (step_fn, ""), "robustness": (robustness_fn, "robustness_")}
+
+
+def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Scheduler):
+    """The scheduler's compiled ``kind`` program ("step" or "robustness") for ``cfg`` and this
+    seed batch, or else the program traced and lowered (timed; compile it with
+    :func:`_compiled`). ``args``: the program's array arguments (or their shapes), seeds first."""
+    name = (kind, program_config(cfg), jax.tree_util.tree_leaves(args[0])[0].shape[0])
     if name in scheduler.programs:
         return scheduler.programs[name]
-    with timer("trace_s"):
-        traced = step_fn.trace(cfg, shapes, keys, jnp.asarray(True))
-    with timer("lower_s"):
-        lowered = traced.lower()
-    return lowered
-
-
-def _robustness_program(cfg: config.Config):
-    def both(p):  # the fixed random states and the disturbance sweep: one program
-        return evaluate.robustness(cfg, p), evaluate.disturbance_sweep(cfg, p)[:2]
-    return jax.jit(jax.vmap(both))
-
-
-def _lower_robustness(cfg: config.Config, params, timer: Timer):
-    with timer("robustness_trace_s"):
-        traced = _robustness_program(cfg).trace(params)
-    with timer("robustness_lower_s"):
+    fn, prefix = _PROGRAMS[kind]
+    with timer(f"{prefix}trace_s"):
+        traced = fn.trace(program_config(cfg), *args)
+    with timer(f"{prefix}lower_s"):
         return traced.lower()
+
+
+def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Timer,
+              scheduler: Scheduler, slot: bool):
+    """``program`` compiled (in a compile slot if ``slot``) and kept by the scheduler; an
+    already compiled one is returned as it is."""
+    if not isinstance(program, jax.stages.Lowered):
+        return program
+    with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_PROGRAMS[kind][1]}compile_s"):
+        compiled = program.compile()
+    scheduler.programs[(kind, program_config(cfg), num_seeds)] = compiled
+    return compiled
 
 
 def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, program=None) -> dict:
@@ -199,9 +215,7 @@ def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, 
     future of it (default: compiled here)."""
     timer = Timer() if timer is None else timer
     if program is None:
-        program = _lower_robustness(cfg, params, timer)
-        with timer("robustness_compile_s"):
-            program = program.compile()
+        program = lambda p: robustness_fn(program_config(cfg), p)  # noqa: E731
     if isinstance(program, concurrent.futures.Future):
         with timer("robustness_wait_s"):
             program = program.result()
@@ -305,32 +319,26 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
 
     def make_initial():
         with timer("init_s"):
-            return jax.block_until_ready(init_fn(cfg, k_init))
+            return jax.block_until_ready(init_fn(program_config(cfg), k_init))
     state_future = scheduler.pool.submit(make_initial)
-    state, history = None, []
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
+    evaluates = policies.spec_for(cfg) is not None and stop == cfg.iterations
     step = robustness = None
     with scheduler.tracing(ticket):
-        if resume:  # validated before compiling
-            state, history = _restore(cfg, seeds, ckpt_dir, state_future.result(), report)
-            if history:
-                report(f"resumed from iteration {len(history)}")
+        state, history = _restore(cfg, seeds, ckpt_dir, state_future.result(), report) if resume else (None, [])
+        if history:
+            report(f"resumed from iteration {len(history)}")
         # The programs are built from the state's shapes while init runs beside them.
-        shapes = jax.eval_shape(lambda k: init_fn(cfg, k), k_init)
+        shapes = jax.eval_shape(lambda k: init_fn(program_config(cfg), k), k_init)
         if len(history) < stop:
-            step = _step_program(cfg, shapes, it_keys[:, 0], timer, scheduler)
-        if policies.spec_for(cfg) is not None and stop == cfg.iterations:
-            robustness = _lower_robustness(cfg, shapes.policy.params, timer)
-    if isinstance(step, jax.stages.Lowered):
-        with scheduler.compile_slots, timer("compile_s"):
-            step = scheduler.programs[(cfg, len(seeds))] = step.compile()
-    if robustness is not None:
-        lowered = robustness
-
-        def compile_robustness():
-            with timer("robustness_compile_s"):
-                return lowered.compile()
-        robustness = scheduler.pool.submit(compile_robustness)
+            step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler)
+        if evaluates:
+            robustness = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler)
+    if step is not None:
+        step = _compiled("step", cfg, len(seeds), step, timer, scheduler, slot=True)
+    if robustness is not None:  # compiled while the run trains
+        robustness = scheduler.pool.submit(_compiled, "robustness", cfg, len(seeds), robustness, timer,
+                                           scheduler, slot=False)
     if state is None:
         state = state_future.result()
     state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gmr_jax import cost
-from gmr_jax.config import CostConfig, REACH_TARGET
+from gmr_jax.tasks.reach import TARGET as REACH_TARGET, CostConfig, reach_cost
 
 dX, dU, T = 12, 6, 5
 
@@ -297,7 +297,7 @@ def test_expansion_averages_over_samples():
 
 
 def test_follows_float32_dtype():
-    cfn = cost.reach_cost(dataclasses.replace(CostConfig(), ee_weight=1.0, state_l1=0.1), TARGET, T,
+    cfn = reach_cost(dataclasses.replace(CostConfig(), ee_weight=1.0, state_l1=0.1), TARGET, T,
                           ee_fn=toy_ee)
     X = jnp.asarray(TARGET + rng.normal(size=(2, T, dX)), jnp.float32)
     U = jnp.asarray(rng.normal(size=(2, T, dU)), jnp.float32)
@@ -316,7 +316,7 @@ def test_reach_cost_default():
     # Row 0: at the target with zero action; row 1: a random nearby trajectory.
     X = np.stack([np.broadcast_to(TARGET, (T, dX)), TARGET + 0.1 * rng.normal(size=(T, dX))])
     U = np.stack([np.zeros((T, dU)), rng.normal(size=(T, dU))])
-    cs = np.asarray(evaluate(cost.reach_cost(cfg, TARGET, T), X, U))
+    cs = np.asarray(evaluate(reach_cost(cfg, TARGET, T), X, U))
     assert np.all(np.isfinite(cs)) and np.all(np.abs(cs[0]) < 1e-12)
     d = X[1] - TARGET
     want = 0.5 * np.sum(np.asarray(cfg.action_weight) * U[1] ** 2, -1)
@@ -325,11 +325,11 @@ def test_reach_cost_default():
     np.testing.assert_allclose(cs[1], want, rtol=1e-12)
     # With an end-effector term: still zero at the target, and it adds ½ w ‖ee − ee*‖².
     cfg_ee = dataclasses.replace(cfg, ee_weight=2.0)
-    cs_ee = np.asarray(evaluate(cost.reach_cost(cfg_ee, TARGET, T, ee_fn=toy_ee), X, U))
+    cs_ee = np.asarray(evaluate(reach_cost(cfg_ee, TARGET, T, ee_fn=toy_ee), X, U))
     assert np.all(np.abs(cs_ee[0]) < 1e-12)
     ee_d = np.asarray(jax.vmap(toy_ee)(X[1, :, :6])) - np.asarray(toy_ee(TARGET[:6]))
     np.testing.assert_allclose(cs_ee[1], want + np.sum(ee_d**2, -1), rtol=1e-12)
     with pytest.raises(ValueError, match="ee_fn"):
-        cost.reach_cost(cfg_ee, TARGET, T)
+        reach_cost(cfg_ee, TARGET, T)
     with pytest.raises(ValueError, match="target_x"):
-        cost.reach_cost(cfg, TARGET[:6], T)
+        reach_cost(cfg, TARGET[:6], T)

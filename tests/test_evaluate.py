@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gmr_jax import config, evaluate, mdgps, sim, tasks
+from gmr_jax import config, evaluate, policies, sim, tasks
 
 
 CFG = config.reach("AB", "mdgps", task__T=6, sim__backend="mujoco")
@@ -27,13 +27,13 @@ def test_robustness_states_are_fixed_and_in_range():
 
 
 def test_robustness_matches_single_rollouts():
-    params = mdgps.make_global_policy(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    params = policies.for_config(CFG).init(jax.random.PRNGKey(0), 12, 6)
     x0 = evaluate.robustness_states(CFG, num=4)
     rob = jax.jit(evaluate.robustness, static_argnums=0)(CFG, params, x0)
     s = sim.make_sim(CFG.sim)
     target = np.asarray(tasks.target_state(CFG.task))
     train = np.asarray(tasks.initial_states(CFG.task))
-    fn = mdgps.policy_mean_fn(CFG, params)
+    fn = policies.mean_fn(policies.for_config(CFG), params)
     for i in range(4):
         traj = sim.rollout(s, fn, x0[i], jnp.zeros((CFG.task.T, 6)))
         final = np.asarray(traj.X[-1])
@@ -46,21 +46,29 @@ def test_robustness_matches_single_rollouts():
 
 
 def test_non_finite_final_state_is_a_failure():
-    params = mdgps.make_global_policy(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    params = policies.for_config(CFG).init(jax.random.PRNGKey(0), 12, 6)
     x0 = jnp.full((1, 12), jnp.nan)
     rob = evaluate.robustness(CFG, params, x0)
     assert not bool(rob.success[0]) and not bool(rob.success_loose[0])
 
 
-def test_disturbance_sweep_radius_zero_starts_at_training_states():
-    params = mdgps.make_global_policy(CFG).init(jax.random.PRNGKey(0), 12, 6)
-    rate, rate_loose, mse = evaluate.disturbance_sweep(CFG, params, [0.0, 0.3], per_radius=2)
+def test_disturbance_sweep_states_and_rates():
+    """Radius 0 starts at the training states; radius r lies r away in the joint angles, at
+    rest; the rates are the fractions of those states below each threshold."""
+    params = policies.for_config(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    radii = [0.0, 0.3]
+    rate, rate_loose, mse = evaluate.disturbance_sweep(CFG, params, radii, per_radius=2)
     assert rate.shape == (2,) and mse.shape == (2, 4)
     x0 = tasks.initial_states(CFG.task)
     direct = evaluate.robustness(CFG, params, jnp.repeat(x0, 2, axis=0))
     np.testing.assert_allclose(np.asarray(mse[0]), np.asarray(direct.mse), rtol=1e-9)
-    assert np.all((np.asarray(rate) >= 0) & (np.asarray(rate) <= 1))
-    assert np.all(np.asarray(rate_loose) >= np.asarray(rate))
+    states = np.asarray(tasks.of(CFG).disturbed_states(CFG, radii, 2, evaluate.ROBUSTNESS_KEY + 1))
+    base = np.repeat(np.asarray(x0), 2, axis=0)
+    np.testing.assert_allclose(np.linalg.norm(states[1] - base, axis=-1), 0.3, rtol=1e-12)
+    np.testing.assert_array_equal(states[:, :, 6:], 0.0)
+    mse = np.asarray(mse)
+    np.testing.assert_array_equal(np.asarray(rate), (mse < CFG.task.success_threshold).mean(axis=1))
+    np.testing.assert_array_equal(np.asarray(rate_loose), (mse < CFG.task.success_threshold_loose).mean(axis=1))
 
 
 def test_config_round_trips_through_its_json_and_rejects_unknown_fields():

@@ -1,12 +1,15 @@
 """Tests of gmr_jax.lqr against closed forms, independent numpy recursions and Monte Carlo."""
 
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gmr_jax import lqr
+from gmr_jax import lqr, step_size
+from gmr_jax.tasks import jaco
 from gmr_jax.config import InitLQRConfig, LQRConfig, StepConfig
 from gmr_jax.types import Dynamics, QuadraticCost
 
@@ -435,7 +438,7 @@ def test_cstep_two_conditions_jaco_sizes_compiles_once():
         return jax.vmap(lqr.eta_search, in_axes=(0, 0, 0, 0, 0, None))(dyn, cost, anchor, eta0, eps, CFG)
 
     cstep = jax.jit(cstep)
-    cfg = InitLQRConfig()
+    cfg = jaco.INIT_LQR
     for seed in (50, 51):
         probs = []
         for m in range(2):
@@ -494,9 +497,14 @@ def test_init_lqr_on_guessed_double_integrator():
     np.testing.assert_allclose(np.einsum("tij,j->ti", pol.K, x0) + pol.k, 0.0, atol=1e-12)
     push = np.asarray(pol.K[0]) @ np.array([0.1, 0.0, 0.0, 0.0, 0.0])
     assert push[0] < 0 and abs(push[1]) < 1e-12
-    # Mismatched per-joint settings are rejected with the field's name.
+    # Mismatched per-joint settings are rejected with the field's name; empty ones mean the
+    # toolbox's defaults (gain 1, acceleration 0 for every joint).
     with pytest.raises(ValueError, match="init_gains"):
-        lqr.init_lqr(jnp.asarray(x0), Ti, dU, dt, InitLQRConfig())
+        lqr.init_lqr(jnp.asarray(x0), Ti, dU, dt, jaco.INIT_LQR)
+    ones = dataclasses.replace(cfg, init_gains=(1.0, 1.0), init_acc=(0.0, 0.0))
+    np.testing.assert_array_equal(init_lqr_jit(jnp.asarray(x0), Ti, dU, dt, ones).K,
+                                  init_lqr_jit(jnp.asarray(x0), Ti, dU, dt,
+                                               dataclasses.replace(cfg, init_gains=(), init_acc=())).K)
 
 
 def test_init_pd():
@@ -523,14 +531,14 @@ def test_step_multiplier():
     cfg = StepConfig()
     # The toolbox's worked example quotes 1.2076 from unrounded improvements; the rounded
     # inputs 21.75 and 12.74 give 21.75 / (2·9.01) = 1.20699.
-    new = lqr.step_multiplier(21.75, 12.74, 1.0, cfg)
+    new = step_size.step_multiplier(21.75, 12.74, 1.0, cfg)
     np.testing.assert_allclose(new, 21.75 / (2 * 9.01), rtol=1e-12)
     assert abs(float(new) - 1.2076) < 1e-3
-    np.testing.assert_allclose(lqr.step_multiplier(21.75, 12.74, 2.0, cfg), 2 * 21.75 / 18.02, rtol=1e-12)
-    assert float(lqr.step_multiplier(10.0, 10.0, 1.0, cfg)) == 5.0  # denominator floor → clip 5
-    assert float(lqr.step_multiplier(-1.0, 3.0, 1.0, cfg)) == pytest.approx(0.1)  # clip 0.1
-    assert float(lqr.step_multiplier(10.0, 10.0, 9.0, cfg)) == 10.0  # max_step_mult
-    assert float(lqr.step_multiplier(-1.0, 3.0, 0.05, cfg)) == pytest.approx(0.01)  # min_step_mult
-    batch = lqr.step_multiplier(jnp.asarray([21.75, 10.0]), jnp.asarray([12.74, 10.0]), jnp.ones(2), cfg)
+    np.testing.assert_allclose(step_size.step_multiplier(21.75, 12.74, 2.0, cfg), 2 * 21.75 / 18.02, rtol=1e-12)
+    assert float(step_size.step_multiplier(10.0, 10.0, 1.0, cfg)) == 5.0  # denominator floor → clip 5
+    assert float(step_size.step_multiplier(-1.0, 3.0, 1.0, cfg)) == pytest.approx(0.1)  # clip 0.1
+    assert float(step_size.step_multiplier(10.0, 10.0, 9.0, cfg)) == 10.0  # max_step_mult
+    assert float(step_size.step_multiplier(-1.0, 3.0, 0.05, cfg)) == pytest.approx(0.01)  # min_step_mult
+    batch = step_size.step_multiplier(jnp.asarray([21.75, 10.0]), jnp.asarray([12.74, 10.0]), jnp.ones(2), cfg)
     np.testing.assert_allclose(batch, [21.75 / 18.02, 5.0], rtol=1e-12)
-    assert lqr.kl_epsilon(1.5, 80, cfg) == pytest.approx(0.2 * 1.5 * 80)
+    assert step_size.kl_epsilon(1.5, 80, cfg) == pytest.approx(0.2 * 1.5 * 80)

@@ -1,6 +1,5 @@
 """The policy interface and the MDGPS baseline MLP: forward pass, loss, variance rule, dtypes."""
 
-import importlib.util
 
 import jax
 import jax.numpy as jnp
@@ -142,9 +141,6 @@ def test_make_policy_cache_and_errors():
         make_policy("linear")
     with pytest.raises(ValueError, match="mlp.activation"):
         MLPConfig(activation="sigmoid")
-    if importlib.util.find_spec("gmr_jax.policies.gmr") is None:
-        with pytest.raises(NotImplementedError):
-            make_policy("gmr")
 
 
 def test_sstep_data_fill_zeros():

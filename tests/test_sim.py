@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 from gmr_jax import config, noise, sim, types
+from gmr_jax.tasks import reach as reach_task
 from test_mjcf import dh_end_effector, random_angles
 
 T = 8
-X_A = np.array(config.REACH_INITIAL_A + (0.0,) * 6)
+X_A = np.array(reach_task.INITIAL["A"] + (0.0,) * 6)
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +148,7 @@ def test_gravity_compensation_holds_pose(s, zero_run):
     with 5 orders of margin that any missing or partial compensation breaks by orders of
     magnitude (without it the arm moves ~0.1–1 rad, test below)."""
     rng = np.random.default_rng(3)
-    q = np.concatenate([np.array([config.REACH_INITIAL_A, config.REACH_INITIAL_B, config.REACH_TARGET]),
+    q = np.concatenate([np.array([reach_task.INITIAL["A"], reach_task.INITIAL["B"], reach_task.TARGET]),
                         random_angles(rng, 5)])
     x0 = np.concatenate([q, np.zeros_like(q)], axis=1)
     traj, xT = zero_run(jnp.asarray(x0))
@@ -173,7 +174,7 @@ def test_without_compensation_the_arm_falls(s):
     s_off = sim.make_sim(config.SimConfig(backend="mujoco", gravity_compensation=False))
     m = s_off.model
     run = jax.jit(lambda x: sim.rollout_with_final(s_off, zero_policy, x, jnp.zeros((20, 6))))
-    for q0 in (np.array(config.REACH_INITIAL_A), np.array(config.REACH_TARGET)):
+    for q0 in (np.array(reach_task.INITIAL["A"]), np.array(reach_task.TARGET)):
         traj, xT = run(jnp.asarray(np.concatenate([q0, np.zeros(6)])))
         X = np.asarray(traj.X)
         grad = np.array([(potential_energy(m, q0 + h) - potential_energy(m, q0 - h)) / 2e-6

@@ -1,0 +1,105 @@
+"""The library's resumable training loop (gmr_jax.runner): an interrupted, resumed and extended
+run equals an uninterrupted one, progress reaches the callback, other settings are refused."""
+
+import dataclasses
+import threading
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from gmr_jax import checkpoint, runner
+from test_mdgps import small
+
+SEEDS = [0, 1]
+
+
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory, scheduler):
+    """An uninterrupted 3-iteration MDGPS run of two seeds, with its progress events."""
+    cfg = small("mdgps", iterations=3)
+    root = tmp_path_factory.mktemp("runs")
+    events = []
+    result = runner.run(cfg, SEEDS, root / "whole", progress_fn=events.append, scheduler=scheduler,
+                        label="w")
+    return cfg, root, result, events
+
+
+def _final_state(cfg, path):
+    return checkpoint.restore(path / "checkpoints", runner.initial_state(cfg, SEEDS))[0]
+
+
+def test_progress_reaches_the_callback_after_every_iteration(whole):
+    cfg, root, result, events = whole
+    its = [e for e in events if "iteration" in e]
+    assert [e["iteration"] for e in its] == [1, 2, 3]
+    assert all(e["run"] == "w" and e["iterations"] == 3 for e in its)
+    for i, e in enumerate(its):  # the callback's metrics are the history's rows
+        np.testing.assert_array_equal(e["metrics"]["sample_cost"], result["history"]["sample_cost"][i])
+    assert result["history"]["sample_cost"].shape == (3, 2, 1)  # [iteration, seed, condition]
+    assert result["robustness"]["success"].shape == (2, 50)
+    assert (root / "whole" / "config.json").is_file()
+
+
+def test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one(whole, scheduler):
+    """Stopped after 1 of 2 iterations, resumed to 2, then extended to 3: the same programs on
+    the same device from bit-identical checkpoints, so the result is bit-identical too."""
+    cfg, root, result, _ = whole
+    short = dataclasses.replace(cfg, iterations=2)
+    part = root / "part"
+    runner.run(short, SEEDS, part, stop_after=1, scheduler=scheduler)
+    assert checkpoint.latest(part / "checkpoints") == 1
+    events = []
+    done = runner.run(short, SEEDS, part, resume=True, scheduler=scheduler, progress_fn=events.append)
+    assert events[0]["message"] == "resumed from iteration 1"
+    assert checkpoint.latest(part / "checkpoints") == 2 and "robustness" in done
+    extended = runner.run(cfg, SEEDS, part, resume=True, scheduler=scheduler)
+    assert checkpoint.latest(part / "checkpoints") == 3
+    for name, value in result["history"].items():
+        np.testing.assert_array_equal(extended["history"][name], value, err_msg=name)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, _final_state(cfg, part), _final_state(cfg, root / "whole"))
+    np.testing.assert_array_equal(extended["robustness"]["mse"], result["robustness"]["mse"])
+
+
+def test_other_settings_and_fewer_iterations_are_refused(whole, scheduler):
+    cfg, root, _, _ = whole
+    with pytest.raises(checkpoint.CheckpointError, match="num_samples"):
+        runner.run(dataclasses.replace(cfg, num_samples=3), SEEDS, root / "whole", resume=True,
+                   scheduler=scheduler)
+    with pytest.raises(checkpoint.CheckpointError, match="holds 3 iterations, more than iterations=2"):
+        runner.run(dataclasses.replace(cfg, iterations=2), SEEDS, root / "whole", resume=True,
+                   scheduler=scheduler)
+    with pytest.raises(checkpoint.CheckpointError, match="seeds"):
+        runner.run(cfg, [0, 2], root / "whole", resume=True, scheduler=scheduler)
+    with pytest.raises(runner.FolderTaken, match="already hold"):
+        runner.run(cfg, SEEDS, root / "whole", scheduler=scheduler)
+
+
+def test_tracing_turns_follow_the_tickets():
+    """Runs trace one at a time in ticket order, whatever order their threads arrive in."""
+    turns = runner.TracingTurns()
+    entered, inside = [], []
+
+    def run(ticket, delay):
+        time.sleep(delay)
+        with turns(ticket):
+            inside.append(ticket)
+            assert len(inside) == 1  # nobody else is tracing
+            entered.append(ticket)
+            time.sleep(0.01)
+            inside.remove(ticket)
+
+    threads = [threading.Thread(target=run, args=(t, d)) for t, d in ((2, 0.0), (0, 0.05), (1, 0.0), (3, 0.02))]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(timeout=10)
+    assert entered == [0, 1, 2, 3]
+    # an exception inside a turn still passes the turn on
+    turns.reset()
+    with pytest.raises(RuntimeError):
+        with turns(0):
+            raise RuntimeError("trace failed")
+    with turns(1):
+        pass
