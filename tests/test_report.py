@@ -1,0 +1,58 @@
+"""The study report (experiments.report) from small synthetic run results: results.json, the
+summary's robustness table against the paper, the imitation iteration, and the figures."""
+
+import json
+
+import numpy as np
+
+from experiments import report
+from gmr_jax import config
+
+ITERS, SEEDS, T, N, STATES = 3, 2, 5, 2, 50
+
+
+def fake_run(M: int, successes, policy=True, seed=0):
+    rng = np.random.default_rng(seed)
+    shape = (ITERS, SEEDS, M)
+    lqr_mse = np.array([1.0, 0.1, 0.01])[:, None, None] * np.ones(shape)
+    h = {"final_state_mse_lqr": lqr_mse, "sample_cost": rng.uniform(1, 2, shape),
+         "kl": rng.uniform(size=shape), "eta": rng.uniform(size=shape), "step_mult": np.ones(shape),
+         "epsilon": np.ones(shape), "sample_costs": rng.uniform(size=shape + (N,)),
+         "eval_ee": rng.normal(size=shape + (T, 3))}
+    run = {"history": h, "wall_s": 1.5, "timing": {"compile_s": 1.0}, "iteration_s": [0.1] * ITERS}
+    if policy:
+        # the policy reaches 3× the base layer's MSE at iteration 1, then 1.5×: imitation from 2
+        h["final_state_mse_policy"] = lqr_mse * np.array([3.0, 1.5, 1.5])[:, None, None]
+        h["policy_eval_ee"] = rng.normal(size=shape + (T, 3))
+        success = np.zeros((SEEDS, STATES), bool)
+        for i, k in enumerate(successes):
+            success[i, :k] = True
+        run["robustness"] = {"success": success, "success_loose": success | True,
+                             "mse": rng.uniform(size=(SEEDS, STATES)), "distance": rng.uniform(size=(SEEDS, STATES)),
+                             "ee": rng.normal(size=(SEEDS, STATES, T, 3)), "extra": {}}
+        run["sweep"] = {"radii": [0.0, 1.0], "success_rate": np.array([[1.0, 0.5], [1.0, 0.3]]),
+                        "success_rate_loose": np.ones((SEEDS, 2))}
+    return run
+
+
+def test_results_summary_and_figures(tmp_path):
+    configs = {(s, a): config.reach(s, a, iterations=ITERS, task__T=T) for s in ("A", "AB") for a in ("gmr", "mdgps")}
+    runs = {("A", "gmr"): fake_run(1, [50, 27]), ("A", "mdgps"): fake_run(1, [0, 2], seed=1),
+            ("AB", "gmr"): fake_run(2, [50, 50], seed=2), ("AB", "mdgps"): fake_run(2, [3, 4], seed=3)}
+    results = report.write_results(tmp_path, configs, runs, [0, 1], "cpu: test", 12.0, command_s=13.0)
+    again = json.loads((tmp_path / "results.json").read_text())
+    assert again == json.loads(json.dumps(results))
+    recs = {(r["scenario"], r["algorithm"], r["seed"]): r for r in again["runs"]}
+    assert recs[("A", "gmr", 1)]["robustness"]["successes"] == 27
+    assert recs[("A", "gmr", 1)]["robustness"]["successes_loose"] == 50
+    assert np.allclose(recs[("AB", "mdgps", 0)]["final_state_mse"], [3.0, 0.15, 0.015])  # the policy's
+    report.write_summary(tmp_path / "summary.md", configs, runs, [0, 1], "cpu: test", 12.0, results)
+    text = (tmp_path / "summary.md").read_text()
+    assert text.startswith("# Reach study summary")
+    assert "| A | 1.0/50 (0–2) | 12/50 | 38.5/50 (27–50) | 50/50 |" in text
+    assert "| A, B | 3.5/50 (3–4) | 50/50 | 50.0/50 (50–50) | 50/50 |" in text
+    assert "13.0 s for the whole command" in text
+    assert text.count("from iteration 2") == 4  # the imitation rule on the synthetic curves
+    report.plot_all(tmp_path, configs, runs)
+    for name in ("learning_curves.png", "paths.png", "robustness.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
