@@ -110,9 +110,13 @@ def main(argv=None) -> int:
     meta = json.loads(meta_path.read_text())
     jax.config.update("jax_enable_x64", meta.get("precision", "float64") == "float64")
     seeds = list(meta["seeds"])
+    try:
+        configs = {name: config.from_dict(d) for name, d in meta["runs"].items()}
+    except (ValueError, TypeError) as err:
+        print(f"python -m experiments.diagnose: error: {meta_path}: {err}", file=sys.stderr)
+        return 1
     results, tables = {}, []
-    for name, cfg_dict in meta["runs"].items():
-        cfg = config.from_dict(cfg_dict)
+    for name, cfg in configs.items():
         if policies.for_config(cfg) is None:
             continue
         ckpt = runner.run_folder(out, *name.split("/")) / "checkpoints"

@@ -380,9 +380,9 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, timer,
             if not iteration_s:  # the run's start-up (waits for its turns and slots included)
                 timer["training_start_s"] = t_it - t0
             new_state, metrics = step(state, it_keys[:, it], jnp.asarray(it == 0))
-            if pending is not None:
-                save(*pending)
-                pending = None
+            if pending is not None:  # cleared first: a failed write is not tried again below
+                job, pending = pending, None
+                save(*job)
             metrics = _host(metrics)
             iteration_s.append(time.perf_counter() - t_it)
             if not np.all(metrics["ok"]):

@@ -343,12 +343,15 @@ class _HostStepper:
         xb = np.asarray(x, dtype=np.float64).reshape(-1, 2 * nq)
         ub = np.broadcast_to(np.asarray(u, dtype=np.float64), lead + (nu,)).reshape(-1, 1, nu)
         B = xb.shape[0]
+        # Members with a non-finite state or torque are not stepped (MuJoCo would warn about
+        # each one); they come out as NaN below.
+        bad_in = ~np.all(np.isfinite(xb), axis=1) | ~np.all(np.isfinite(ub), axis=(1, 2))
         state0 = np.tile(self.template, (B, 1))
         state0[:, 0] = 0.0  # time
-        state0[:, self.i_qpos:self.i_qvel] = xb[:, :nq]
-        state0[:, self.i_qvel:self.i_qvel + nq] = xb[:, nq:]
+        state0[:, self.i_qpos:self.i_qvel] = np.where(bad_in[:, None], state0[:, self.i_qpos:self.i_qvel], xb[:, :nq])
+        state0[:, self.i_qvel:self.i_qvel + nq] = np.where(bad_in[:, None], 0.0, xb[:, nq:])
         out = np.empty((B, self.substeps, self.nstate))
-        ctrl = np.ascontiguousarray(np.broadcast_to(ub, (B, self.substeps, nu)))
+        ctrl = np.ascontiguousarray(np.broadcast_to(np.where(bad_in[:, None, None], 0.0, ub), (B, self.substeps, nu)))
         with self.lock:
             self.serial.rollout(self.model, self.data, state0, ctrl, nstep=self.substeps, state=out,
                                 sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
@@ -357,7 +360,7 @@ class _HostStepper:
         # C MuJoCo silently resets a state whose acceleration or position went bad (time then
         # restarts at 0): turn such members, and any non-finite input, into NaN so the
         # divergence is visible, as it is with MJX.
-        bad = (np.abs(last[:, 0] - self.t_end) > 0.5 * self.model.opt.timestep) | ~np.all(np.isfinite(xb), axis=1)
+        bad = (np.abs(last[:, 0] - self.t_end) > 0.5 * self.model.opt.timestep) | bad_in
         x1[bad] = np.nan
         return x1.reshape(lead + (2 * nq,)).astype(x.dtype, copy=False)
 

@@ -1,0 +1,144 @@
+"""Fault injection: every expected failure of a training run ends in a clear message, keeps what
+was written before, and a resumed run continues correctly.
+
+| fault | what must happen | test |
+| --- | --- | --- |
+| NaN from the plant in the middle of a run | TrainingError naming the iteration; earlier checkpoints intact | test_nan_from_the_plant_stops_the_run |
+| a checkpoint write that fails half-way | CheckpointError; the previous checkpoint intact, resume continues | test_failed_checkpoint_write_keeps_the_previous_one |
+| stop request (Ctrl-C, SIGTERM) | the iteration in flight finishes and is checkpointed; resume equals an uninterrupted run | test_stop_request_checkpoints_and_resumes |
+| the process killed (kill -9) between iterations | resume equals an uninterrupted run | test_runner.py::test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one |
+| a corrupt newest checkpoint | set aside (renamed) and reported; resume from the one before | test_corrupt_newest_checkpoint_falls_back |
+| a missing MJCF scene | one line naming the file, exit 1 | test_missing_mjcf_is_one_line |
+| a config.json with an unknown field | one line naming the field | test_config_json_with_an_unknown_field |
+| Ctrl-C / SIGTERM reach the CLI | the scheduler's stop is requested | test_signals_request_a_stop |
+"""
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+
+from experiments import cli, diagnose, reach
+from gmr_jax import checkpoint, runner, sim
+from test_mdgps import small
+
+SEEDS = [0, 1]
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return small("mdgps", iterations=3)
+
+
+@pytest.fixture(scope="module")
+def whole(cfg, tmp_path_factory, scheduler):
+    root = tmp_path_factory.mktemp("faults")
+    return root, runner.run(cfg, SEEDS, root / "whole", scheduler=scheduler)
+
+
+def _same_history(a, b):
+    for name, value in b["history"].items():
+        np.testing.assert_array_equal(a["history"][name], value, err_msg=name)
+
+
+def test_nan_from_the_plant_stops_the_run(cfg, whole, scheduler, monkeypatch):
+    root, _ = whole
+    clean = sim._HostStepper.rollout
+
+    def nan_plant(self, *args, **kwargs):
+        X, U, xT = clean(self, *args, **kwargs)
+        return X * np.nan, U, xT * np.nan
+
+    def first_iteration_then_nan(event):  # from the second iteration on the plant returns NaN
+        if event.get("iteration") == 1:
+            monkeypatch.setattr(sim._HostStepper, "rollout", nan_plant)
+
+    with pytest.raises(runner.TrainingError, match=r"iteration 2: non-finite .* iterations ≤ 1 .* are intact"):
+        runner.run(cfg, SEEDS, root / "nan", scheduler=scheduler, progress_fn=first_iteration_then_nan)
+    assert checkpoint.all_steps(root / "nan" / "checkpoints") == [1]
+    checkpoint.restore(root / "nan" / "checkpoints", runner.initial_state(cfg, SEEDS))  # intact
+
+
+def test_failed_checkpoint_write_keeps_the_previous_one(cfg, whole, scheduler, monkeypatch):
+    root, result = whole
+    saves = []
+    real = ocp.StandardCheckpointHandler.async_save
+
+    async def disk_full_on_second(self, *args, **kwargs):
+        saves.append(1)
+        if len(saves) == 2:
+            raise OSError("No space left on device")
+        return await real(self, *args, **kwargs)
+
+    monkeypatch.setattr(ocp.StandardCheckpointHandler, "async_save", disk_full_on_second)
+    with pytest.raises(checkpoint.CheckpointError, match="step 2 .* failed .*No space left.* untouched"):
+        runner.run(cfg, SEEDS, root / "full", scheduler=scheduler)
+    assert checkpoint.all_steps(root / "full" / "checkpoints") == [1]
+    monkeypatch.setattr(ocp.StandardCheckpointHandler, "async_save", real)
+    _same_history(runner.run(cfg, SEEDS, root / "full", resume=True, scheduler=scheduler), result)
+
+
+def test_stop_request_checkpoints_and_resumes(cfg, whole, scheduler):
+    root, result = whole
+    stop_after_first = lambda e: scheduler.request_stop() if e.get("iteration") == 1 else None  # noqa: E731
+    try:
+        with pytest.raises(runner.Interrupted, match="stopped after iteration 1 of 3"):
+            runner.run(cfg, SEEDS, root / "stop", scheduler=scheduler, progress_fn=stop_after_first)
+    finally:
+        scheduler.stop.clear()
+    assert checkpoint.all_steps(root / "stop" / "checkpoints") == [1]
+    _same_history(runner.run(cfg, SEEDS, root / "stop", resume=True, scheduler=scheduler), result)
+
+
+def test_corrupt_newest_checkpoint_falls_back(cfg, whole, scheduler):
+    root, result = whole
+    run_dir = root / "corrupt"
+    shutil.copytree(root / "whole", run_dir)
+    for dirpath, _, files in os.walk(run_dir / "checkpoints" / "3" / "state"):
+        for name in files:
+            if "/d" in dirpath or name.startswith("d"):  # the array data files
+                path = os.path.join(dirpath, name)
+                data = bytearray(open(path, "rb").read())
+                data[len(data) // 2] ^= 0xFF
+                open(path, "wb").write(bytes(data))
+    events = []
+    resumed = runner.run(cfg, SEEDS, run_dir, resume=True, scheduler=scheduler, progress_fn=events.append)
+    messages = [e["message"] for e in events if "message" in e]
+    assert messages[0].startswith("checkpoint step 3 is corrupt") and "set aside as 3.corrupt" in messages[0]
+    assert messages[1] == "resumed from iteration 2"
+    assert (run_dir / "checkpoints" / "3.corrupt").is_dir() and checkpoint.all_steps(run_dir / "checkpoints") == [1, 2, 3]
+    _same_history(resumed, result)
+
+
+def test_missing_mjcf_is_one_line(tmp_path, capsys):
+    code = reach.main(["--out", str(tmp_path), "--algorithm", "lqr", "--scenario", "A", "--no-plots",
+                       "--set", "sim__scene=/no/such/scene.xml", "--compilation-cache", "none"])
+    err = capsys.readouterr().err.strip()
+    assert code == cli.EXIT_FAILED
+    assert len(err.splitlines()) == 1 and "/no/such/scene.xml" in err and "does not exist" in err, err
+
+
+def test_config_json_with_an_unknown_field(tmp_path, capsys):
+    cfg = dataclasses.asdict(small("gmr"))
+    cfg["gmr"]["alfa"] = 0.5
+    (tmp_path / "config.json").write_text(json.dumps({"seeds": [0], "runs": {"A/gmr": cfg}}))
+    assert diagnose.main([str(tmp_path)]) == cli.EXIT_FAILED
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "alfa" in err and "config.json" in err, err
+
+
+def test_signals_request_a_stop():
+    with runner.Scheduler() as own:
+        before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            cli._stop_on_signals(own)
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert own.stop.wait(timeout=5)
+        finally:
+            for s, handler in before.items():
+                signal.signal(s, handler)
