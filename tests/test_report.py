@@ -56,3 +56,15 @@ def test_results_summary_and_figures(tmp_path):
     report.plot_all(tmp_path, configs, runs)
     for name in ("learning_curves.png", "paths.png", "robustness.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+
+
+def test_compare_names_the_differing_fields():
+    from experiments import compare
+
+    rec = {"scenario": "A", "algorithm": "gmr", "seed": 0, "kl": [1.0, 2.0], "robustness": {"successes": 50}}
+    same = {("A", "gmr", 0): rec}
+    assert compare.compare(same, {("A", "gmr", 0): dict(rec)}) == []
+    other = {("A", "gmr", 0): dict(rec, kl=[1.0, 2.2]), ("A", "gmr", 1): rec}
+    lines = compare.compare(same, other)
+    assert lines[0] == "only in the second: ('A', 'gmr', 1)"
+    assert lines[1] == "A/gmr/0 kl: largest relative difference 0.1"
