@@ -95,6 +95,9 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
                         "or --set sstep__epochs=100 (repeatable; values are Python literals)")
+    p.add_argument("--devices", type=_positive_int, default=None,
+                   help="split the seeds over this many local devices (default: all of them; a "
+                        "seed count they do not divide is padded, the padding dropped)")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -209,7 +212,8 @@ def run_study(args, t_start: float) -> int:
         runner.check_fresh([runner.run_folder(out, *key) for key in args.configs])
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    device = f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}"
+    used = jax.local_devices()[: args.devices or len(jax.local_devices())]
+    device = f"{used[0].platform}: {used[0].device_kind}" + (f" × {len(used)}" if len(used) > 1 else "")
     print(f"gmr-jax {args.task.name} study -> {out}  (device {device}, seeds {seeds})")
     (out / "config.json").write_text(json.dumps({
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
@@ -221,7 +225,7 @@ def run_study(args, t_start: float) -> int:
     for (scenario, algorithm), cfg in args.configs.items():
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
-    with runner.Scheduler(args.compile_jobs) as scheduler:
+    with runner.Scheduler(args.compile_jobs, args.devices) as scheduler:
         _stop_on_signals(scheduler)
         plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()

@@ -23,17 +23,18 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import dataclasses
+import functools
 import json
 import pathlib
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import checkpoint, config, evaluate, mdgps, policies, tasks
+from gmr_jax import checkpoint, config, evaluate, mdgps, policies, sharding, tasks
 
 ProgressFn = Callable[[dict], None]
 
@@ -121,15 +122,18 @@ class Scheduler:
       tracing: :class:`TracingTurns` of the runs.
       compile_slots: at most ``compile_jobs`` iteration programs compile at once (XLA spreads one
         compilation over the cores, so many at once mostly slow each other down).
-      programs: compiled iteration programs per (config, number of seeds): a resumed or
-        repeated run of the same configuration reuses its executable.
+      programs: compiled programs per (kind, config, number of seeds): a resumed, extended or
+        repeated run of the same configuration reuses its executables.
+      mesh: the 1-D device mesh the runs split their seeds over (``devices``: the first n local
+        devices; default all, see :mod:`gmr_jax.sharding`).
       pool: background threads (initial states, robustness compilation, the caller's work).
       stop: set by :meth:`request_stop` (e.g. from a signal handler); runs end after the
         iteration in flight.
     """
 
-    def __init__(self, compile_jobs: int = 2, workers: int = 8):
+    def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 8):
         config.check_positive_int("compile_jobs", compile_jobs)
+        self.mesh = sharding.seed_mesh(devices)
         self.tracing = TracingTurns()
         self.compile_slots = threading.BoundedSemaphore(compile_jobs)
         self.programs: dict = {}
@@ -149,11 +153,34 @@ class Scheduler:
         self.close()
 
 
-# One jitted function each for the whole process: repeated and resumed runs of the same
-# configuration reuse the compiled executables. The first-iteration flag is a run-time scalar
-# shared by all seeds (``in_axes=None``): one program serves every iteration.
-init_fn = jax.jit(jax.vmap(mdgps.init, in_axes=(None, 0)), static_argnums=0)
-step_fn = jax.jit(jax.vmap(mdgps.iteration, in_axes=(None, 0, 0, None)), static_argnums=0)
+def _robustness(cfg: config.Config, params):
+    """The task's fixed random states and its disturbance sweep: one program."""
+    return evaluate.robustness(cfg, params), evaluate.disturbance_sweep(cfg, params)[:2]
+
+
+def _program(kind: str, mesh):
+    """The jitted seed-vmapped program ``kind`` on ``mesh`` (one per process, see
+    ``sharding.seed_program``): "init" (cfg, keys), "step" (cfg, state, keys, first) and
+    "robustness" (cfg, params). The first-iteration flag is shared by all seeds: one program
+    serves every iteration."""
+    fn, batched = {"init": (mdgps.init, (True,)), "step": (mdgps.iteration, (True, True, False)),
+                   "robustness": (_robustness, (True,))}[kind]
+    return sharding.seed_program(fn, mesh, batched)
+
+
+class _Layout(NamedTuple):
+    """How a run's S seeds lie on the scheduler's mesh (padded to a multiple of its devices)."""
+
+    mesh: Any
+    num: int
+
+    def device(self, tree):
+        """Host or device leaves [S, ...] → padded [S', ...], split over the mesh."""
+        return sharding.place(sharding.pad(tree, self.num, self.mesh), self.mesh)
+
+    def real(self, tree):
+        """Leaves [S', ...] → the real seeds' [S, ...]."""
+        return sharding.unpad(tree, self.num)
 
 
 def seed_keys(cfg: config.Config, seeds) -> tuple[jax.Array, jax.Array]:
@@ -163,8 +190,9 @@ def seed_keys(cfg: config.Config, seeds) -> tuple[jax.Array, jax.Array]:
 
 
 def initial_state(cfg: config.Config, seeds) -> mdgps.TrainState:
-    """The batched initial TrainState of the seeds (the template of their checkpoints)."""
-    return init_fn(program_config(cfg), seed_keys(cfg, seeds)[0])
+    """The batched initial TrainState of the seeds on one device (the template of their
+    checkpoints)."""
+    return _program("init", sharding.seed_mesh(1))(program_config(cfg), seed_keys(cfg, seeds)[0])
 
 
 def program_config(cfg: config.Config) -> config.Config:
@@ -174,13 +202,7 @@ def program_config(cfg: config.Config) -> config.Config:
     return dataclasses.replace(cfg, iterations=1)
 
 
-def _robustness(cfg: config.Config, params):
-    """The task's fixed random states and its disturbance sweep: one program."""
-    return evaluate.robustness(cfg, params), evaluate.disturbance_sweep(cfg, params)[:2]
-
-
-robustness_fn = jax.jit(jax.vmap(_robustness, in_axes=(None, 0)), static_argnums=0)
-_PROGRAMS = {"step": (step_fn, ""), "robustness": (robustness_fn, "robustness_")}
+_TIMER_PREFIX = {"step": "", "robustness": "robustness_"}
 
 
 def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Scheduler):
@@ -190,9 +212,9 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
     name = (kind, program_config(cfg), jax.tree_util.tree_leaves(args[0])[0].shape[0])
     if name in scheduler.programs:
         return scheduler.programs[name]
-    fn, prefix = _PROGRAMS[kind]
+    prefix = _TIMER_PREFIX[kind]
     with timer(f"{prefix}trace_s"):
-        traced = fn.trace(program_config(cfg), *args)
+        traced = _program(kind, scheduler.mesh).trace(program_config(cfg), *args)
     with timer(f"{prefix}lower_s"):
         return traced.lower()
 
@@ -203,24 +225,27 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     already compiled one is returned as it is."""
     if not isinstance(program, jax.stages.Lowered):
         return program
-    with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_PROGRAMS[kind][1]}compile_s"):
+    with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
         compiled = program.compile()
     scheduler.programs[(kind, program_config(cfg), num_seeds)] = compiled
     return compiled
 
 
-def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, program=None) -> dict:
+def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, program=None,
+                        layout: _Layout | None = None) -> dict:
     """Robustness of every seed's policy (leading seed axis of ``params``): the task's fixed
     random states and its disturbance sweep. ``program``: the compiled robustness program, or a
-    future of it (default: compiled here)."""
+    future of it (default: compiled here); ``layout``: how ``params`` lie on the devices
+    (default: one device, unpadded)."""
     timer = Timer() if timer is None else timer
     if program is None:
-        program = lambda p: robustness_fn(program_config(cfg), p)  # noqa: E731
+        program = functools.partial(_program("robustness", sharding.seed_mesh(1)), program_config(cfg))
     if isinstance(program, concurrent.futures.Future):
         with timer("robustness_wait_s"):
             program = program.result()
     with timer("robustness_run_s"):
-        rob, (rate, rate_loose) = _host(program(params))
+        out = program(params)
+        rob, (rate, rate_loose) = _host(out if layout is None else layout.real(out))
     radii = [float(r) for r in tasks.of(cfg).sweep_radii]
     return {"robustness": rob._asdict(), "sweep": {"radii": radii, "success_rate": np.asarray(rate),
                                                      "success_rate_loose": np.asarray(rate_loose)}}
@@ -312,45 +337,61 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         check_fresh([run_dir])
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({"seeds": list(seeds), "config": config.to_dict(cfg)}, indent=1))
-    k_init, it_keys = seed_keys(cfg, seeds)
+    layout = _Layout(scheduler.mesh, len(seeds))
+    k_init, it_keys = (layout.device(k) for k in seed_keys(cfg, seeds))
     meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
     t0 = time.perf_counter()
     timer = Timer()
-
-    def make_initial():
-        with timer("init_s"):
-            return jax.block_until_ready(init_fn(program_config(cfg), k_init))
-    state_future = scheduler.pool.submit(make_initial)
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
-    evaluates = policies.spec_for(cfg) is not None and stop == cfg.iterations
-    step = robustness = None
-    with scheduler.tracing(ticket):
-        state, history = _restore(cfg, seeds, ckpt_dir, state_future.result(), report) if resume else (None, [])
-        if history:
-            report(f"resumed from iteration {len(history)}")
-        # The programs are built from the state's shapes while init runs beside them.
-        shapes = jax.eval_shape(lambda k: init_fn(program_config(cfg), k), k_init)
-        if len(history) < stop:
-            step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler)
-        if evaluates:
-            robustness = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler)
-    if step is not None:
-        step = _compiled("step", cfg, len(seeds), step, timer, scheduler, slot=True)
-    if robustness is not None:  # compiled while the run trains
-        robustness = scheduler.pool.submit(_compiled, "robustness", cfg, len(seeds), robustness, timer,
-                                           scheduler, slot=False)
-    if state is None:
-        state = state_future.result()
-    state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta,
+    state, history, step, robustness = _prepare(cfg, seeds, layout, k_init, it_keys, ckpt_dir, resume, stop,
+                                                timer, scheduler, ticket, report)
+    state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout,
                                               timer, scheduler, progress_fn, label, t0)
     timer["iterations_s"] = float(np.sum(iteration_s))
     stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
     result = {"history": stacked, "iteration_s": iteration_s}
     if robustness is not None and len(history) == cfg.iterations:
-        result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness))
+        result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
     result["wall_s"] = time.perf_counter() - t0
     result["timing"] = dict(timer)
     return result
+
+
+def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, stop, timer, scheduler, ticket,
+             report):
+    """The run's starting point and programs: (state on the devices, history, compiled step
+    program or None, future of the compiled robustness program or None).
+
+    The initial state is computed in the background while this run, in its tracing turn,
+    restores its checkpoint (validated before anything compiles) and traces its programs from
+    the state's shapes; the step program then compiles in a compile slot, the robustness program
+    in the background while the run trains."""
+    init = functools.partial(_program("init", layout.mesh), program_config(cfg))
+
+    def make_initial():
+        with timer("init_s"):
+            return jax.block_until_ready(init(k_init))
+    state_future = scheduler.pool.submit(make_initial)
+    num = k_init.shape[0]
+    step = robustness = None
+    with scheduler.tracing(ticket):
+        state, history = None, []
+        if resume:
+            state, history = _restore(cfg, seeds, ckpt_dir, layout.real(state_future.result()), report)
+        if history:
+            report(f"resumed from iteration {len(history)}")
+            state = layout.device(state)
+        shapes = jax.eval_shape(init, k_init)
+        if len(history) < stop:
+            step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler)
+        if policies.spec_for(cfg) is not None and stop == cfg.iterations:
+            robustness = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler)
+    if step is not None:
+        step = _compiled("step", cfg, num, step, timer, scheduler, slot=True)
+    if robustness is not None:
+        robustness = scheduler.pool.submit(_compiled, "robustness", cfg, num, robustness, timer, scheduler,
+                                           slot=False)
+    return (state_future.result() if state is None else state), history, step, robustness
 
 
 def _failure(cfg: config.Config, it: int, metrics: dict, ckpt_dir: pathlib.Path) -> TrainingError:
@@ -361,7 +402,7 @@ def _failure(cfg: config.Config, it: int, metrics: dict, ckpt_dir: pathlib.Path)
         "are intact (try --precision float64, or other settings)")
 
 
-def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, timer, scheduler,
+def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout: _Layout, timer, scheduler,
                 progress_fn, label, t0):
     """Iterations ``len(history) … stop − 1``; each iteration's checkpoint is written while the
     next iteration runs on the device (the step returns before the device has finished), and
@@ -370,7 +411,8 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, timer,
 
     def save(done: int, st, hist):
         with timer("checkpoint_s"):
-            checkpoint.save(ckpt_dir, st, step=done, metadata={**meta, "history": [jsonable(h) for h in hist]})
+            checkpoint.save(ckpt_dir, layout.real(st), step=done,
+                            metadata={**meta, "history": [jsonable(h) for h in hist]})
 
     try:
         for it in range(len(history), stop):
@@ -383,7 +425,7 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, timer,
             if pending is not None:  # cleared first: a failed write is not tried again below
                 job, pending = pending, None
                 save(*job)
-            metrics = _host(metrics)
+            metrics = _host(layout.real(metrics))
             iteration_s.append(time.perf_counter() - t_it)
             if not np.all(metrics["ok"]):
                 raise _failure(cfg, it + 1, metrics, ckpt_dir)

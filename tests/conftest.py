@@ -1,7 +1,16 @@
-"""Test set-up: float64 numerics for every test, and one runner scheduler for the session."""
+"""Test set-up: float64 numerics for every test, four CPU devices, and one runner scheduler."""
 
-import jax
-import pytest
+import os
+
+# Four XLA CPU devices, so that the seed axis can be split over a device mesh
+# (tests/test_sharding.py); every other computation runs on the first device as before. Set
+# before JAX starts its backend.
+_FLAGS = os.environ.get("XLA_FLAGS", "")
+if "xla_force_host_platform_device_count" not in _FLAGS:
+    os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_force_host_platform_device_count=4".strip()
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 # The persistent compilation cache stays off: executables that contain host callbacks (the
 # C MuJoCo backend) are not safe to share through it, and every CI run starts from a clean clone.
@@ -14,5 +23,5 @@ def scheduler():
     programs (each compilation costs tens of seconds on the CPU)."""
     from gmr_jax import runner
 
-    with runner.Scheduler(compile_jobs=1) as shared:
+    with runner.Scheduler(compile_jobs=1, devices=1) as shared:
         yield shared

@@ -3,7 +3,6 @@ runner and the reports rely on (gmr_jax/tasks/__init__.py)."""
 
 import dataclasses
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -1,0 +1,110 @@
+"""Many seeds on several devices: the vmapped seed axis sharded over a 1-D device mesh.
+
+Seeds are independent, so a program vmapped over seeds splits into per-device programs with no
+communication: :func:`over_seeds` wraps a seed-vmapped function in ``jax.shard_map`` over the
+mesh axis ``"seeds"``. Each device runs the same program on its block of seeds; host callbacks
+(the C MuJoCo backend) run per device on that block, instead of gathering every seed onto one
+device as a ``pure_callback`` under a global-view ``jit`` would.
+
+A seed count that the device count does not divide is padded with copies of the last seed
+(:func:`pad`); the padding is computed and dropped (:func:`unpad`), never reported or saved.
+Checkpoints hold host copies of the real seeds only, so they restore onto any device count.
+
+With one device every function here is the identity on the program: results are those of the
+plain vmapped program.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+AXIS = "seeds"
+
+
+def seed_mesh(devices: int | None = None) -> Mesh:
+    """A 1-D mesh named ``"seeds"`` over the first ``devices`` local devices (default: all)."""
+    available = jax.local_devices()
+    n = len(available) if devices is None else devices
+    if not (isinstance(n, int) and 1 <= n <= len(available)):
+        raise ValueError(f"devices={devices!r}: must be between 1 and the {len(available)} local "
+                         f"device(s) ({available[0].platform})")
+    # Auto axes: shardings stay out of the array types, so the seed-vmapped programs trace the
+    # same on one device and on several.
+    return jax.make_mesh((n,), (AXIS,), axis_types=(jax.sharding.AxisType.Auto,), devices=available[:n])
+
+
+def padded_count(num_seeds: int, mesh: Mesh) -> int:
+    """The seed count rounded up to a multiple of the mesh's device count."""
+    n = mesh.size
+    return -(-num_seeds // n) * n
+
+
+def pad(tree, num_seeds: int, mesh: Mesh):
+    """Leaves [S, ...] → [S', ...], S' = :func:`padded_count`, the extra rows copies of the last
+    seed's (they compute what that seed computes and are dropped by :func:`unpad`)."""
+    extra = padded_count(num_seeds, mesh) - num_seeds
+    if extra == 0:
+        return tree
+    return jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), tree)
+
+
+def unpad(tree, num_seeds: int):
+    """Leaves [S', ...] → the real seeds' [S, ...] (no copy when nothing was padded)."""
+    return jax.tree_util.tree_map(lambda a: a if a.shape[0] == num_seeds else a[:num_seeds], tree)
+
+
+def place(tree, mesh: Mesh):
+    """Put leaves [S', ...] on the mesh, split along the seed axis."""
+    sharding = NamedSharding(mesh, PartitionSpec(AXIS))
+    return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding), tree)
+
+
+def over_seeds(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
+    """``fn`` (already vmapped over a leading seed axis) split over the mesh's devices.
+
+    Args:
+      fn: (*args) -> outputs, every output leaf with a leading seed axis.
+      mesh: from :func:`seed_mesh`.
+      batched: per positional argument, whether it carries the seed axis (True) or is shared by
+        all seeds (False, replicated).
+    Returns:
+      The same function; with one device ``fn`` itself.
+    """
+    if mesh.size == 1:
+        return fn
+    seeds, shared = PartitionSpec(AXIS), PartitionSpec()
+    return jax.shard_map(fn, mesh=mesh, in_specs=tuple(seeds if b else shared for b in batched),
+                         out_specs=seeds, check_vma=False)
+
+
+@functools.lru_cache(maxsize=None)
+def seed_program(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
+    """``jax.jit`` of ``fn(cfg, *args)`` vmapped over the seed axis of the ``batched`` arguments
+    and split over ``mesh``; ``cfg`` (the first argument) is static. Cached per (fn, mesh,
+    batched), so every caller shares one jitted function and its compilation cache."""
+    in_axes = tuple(0 if b else None for b in batched)
+
+    def program(cfg, *args):
+        vmapped = jax.vmap(functools.partial(fn, cfg), in_axes=in_axes)
+        return over_seeds(vmapped, mesh, batched)(*args)
+    return jax.jit(program, static_argnums=0)
+
+
+def train(cfg, keys: jax.Array, mesh: Mesh | None = None):
+    """``jax.vmap(mdgps.train)`` over ``keys`` [S] split over ``mesh`` (default: all local
+    devices); S need not be a multiple of the device count.
+
+    Returns:
+      (final TrainState, metrics history), leaves with a leading seed axis [S, ...].
+    """
+    from gmr_jax import mdgps
+
+    mesh = seed_mesh() if mesh is None else mesh
+    num = keys.shape[0]
+    program = seed_program(mdgps.train, mesh, (True,))
+    return unpad(program(cfg, place(pad(keys, num, mesh), mesh)), num)

@@ -1,0 +1,79 @@
+"""Seeds split over a device mesh (gmr_jax.sharding, the runner): on four XLA CPU devices
+(tests/conftest.py) a sharded run equals the single-device run of the same keys, a seed count
+the devices do not divide is padded and the padding dropped, and a run resumes on another device
+count. The C MuJoCo backend's host callbacks run per device."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from gmr_jax import checkpoint, mdgps, runner, sharding
+from test_mdgps import assert_trees_close, small
+
+SEEDS = [0, 1, 2, 3]
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return small("lqr", iterations=2)
+
+
+@pytest.fixture(scope="module")
+def four_devices():
+    if len(jax.local_devices()) < 4:
+        pytest.skip("needs four devices (XLA_FLAGS=--xla_force_host_platform_device_count=4)")
+    with runner.Scheduler(compile_jobs=1, devices=4) as sched:
+        yield sched
+
+
+@pytest.fixture(scope="module")
+def runs(cfg, four_devices, scheduler, tmp_path_factory):
+    root = tmp_path_factory.mktemp("sharding")
+    one = runner.run(cfg, SEEDS, root / "one", scheduler=scheduler)
+    four = runner.run(cfg, SEEDS, root / "four", scheduler=four_devices)
+    return root, one, four
+
+
+def _same(a, b, num=None):
+    """Histories equal to round-off: a device's program runs the same operations on a smaller
+    batch of seeds, which XLA may vectorise with other summation orders (the same tolerance as
+    the vmap-against-loop comparison in test_mdgps.py)."""
+    for name, value in b["history"].items():
+        value = value if num is None else value[:, :num]
+        assert_trees_close(a["history"][name], value, rtol=2e-5, atol=1e-7)
+
+
+def test_sharded_run_equals_the_single_device_run(runs, four_devices):
+    root, one, four = runs
+    assert four_devices.mesh.size == 4
+    _same(four, one)
+
+
+def test_uneven_seed_count_is_padded_and_the_padding_dropped(cfg, runs, four_devices):
+    root, _, four = runs
+    three = runner.run(cfg, SEEDS[:3], root / "three", scheduler=four_devices)
+    assert three["history"]["sample_cost"].shape[1] == 3
+    _same(three, four, num=3)
+    saved, meta = checkpoint.restore(root / "three" / "checkpoints", runner.initial_state(cfg, SEEDS[:3]))
+    assert meta["seeds"] == SEEDS[:3] and saved.eta.shape[0] == 3  # checkpoints hold the real seeds only
+
+
+def test_resume_on_another_device_count(cfg, runs, four_devices, scheduler):
+    root, one, _ = runs
+    runner.run(cfg, SEEDS, root / "moved", stop_after=1, scheduler=four_devices)
+    _same(runner.run(cfg, SEEDS, root / "moved", resume=True, scheduler=scheduler), one)
+    runner.run(cfg, SEEDS, root / "back", stop_after=1, scheduler=scheduler)
+    _same(runner.run(cfg, SEEDS, root / "back", resume=True, scheduler=four_devices), one)
+
+
+def test_library_train_over_a_mesh(cfg, four_devices):
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in range(3)])
+    final, hist = sharding.train(cfg, keys, four_devices.mesh)
+    ref_final, ref_hist = jax.jit(jax.vmap(mdgps.train, in_axes=(None, 0)), static_argnums=0)(cfg, keys)
+    assert_trees_close(hist, ref_hist, rtol=2e-5, atol=1e-7)
+    assert_trees_close(final, ref_final, rtol=2e-5, atol=1e-7)
+
+
+def test_mesh_of_too_many_devices_is_refused():
+    with pytest.raises(ValueError, match="devices=99: must be between 1 and the"):
+        sharding.seed_mesh(99)
