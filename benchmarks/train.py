@@ -1,7 +1,8 @@
 """Wall time of whole training runs, many seeds in parallel: ``jax.vmap(gmr_jax.train)``.
 
-For each seed count S, one jitted ``jax.vmap(mdgps.train, in_axes=(None, 0))`` over S keys runs
-the full configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples,
+For each seed count S, one jitted ``jax.vmap(mdgps.train, in_axes=(None, 0))`` over S keys,
+split over ``--devices`` local devices (``gmr_jax.sharding``; default all), runs the full
+configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples,
 T = 80, 10 iterations). Compile time (lower + compile) and run time (median over repeats, after
 compilation) are reported separately, with the final-state MSE reached, so that speed is never
 quoted for a run that did not learn. Example::
@@ -22,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import config, mdgps, policies
+from gmr_jax import config, mdgps, policies, sharding
 from gmr_jax.tasks import reach as reach_task
 
 
@@ -39,6 +40,8 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=1, help="timed runs per seed count (median)")
     p.add_argument("--precision", default="float64", choices=("float32", "float64"),
                    help="floating-point precision (default: %(default)s, as experiments.reach)")
+    p.add_argument("--devices", type=int, default=None, help="local devices to split the seeds over "
+                   "(default: all)")
     p.add_argument("--out", help="write the results as JSON to this file")
     return p.parse_args(argv)
 
@@ -48,18 +51,19 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", args.precision == "float64")
     cfg = config.reach(args.scenario, args.algorithm, iterations=args.iterations,
                        num_samples=args.samples, task__T=args.T, sim__backend=args.backend)
+    mesh = sharding.seed_mesh(args.devices)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,
            "precision": args.precision,
-           "backend": dev.platform, "jax": jax.__version__, "python": platform.python_version(),
+           "backend": dev.platform, "devices": mesh.size, "jax": jax.__version__, "python": platform.python_version(),
            "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
-    print(f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, {env['date']}")
+    print(f"Device: {env['device']} ({env['backend']}) × {mesh.size}, jax {env['jax']}, {env['date']}")
     print(f"{args.algorithm} on {args.scenario}: {cfg.iterations} iterations, {cfg.num_samples} samples, "
           f"T = {cfg.task.T}, {cfg.task.num_conditions} condition(s)", flush=True)
-    fn = jax.jit(jax.vmap(mdgps.train, in_axes=(None, 0)), static_argnums=0)
+    fn = sharding.seed_program(mdgps.train, mesh, (True,))
     rows = []
     for n in [int(s) for s in args.seeds.split(",") if s]:
-        keys = jnp.stack([jax.random.PRNGKey(s) for s in range(n)])
+        keys = sharding.place(sharding.pad(jnp.stack([jax.random.PRNGKey(s) for s in range(n)]), n, mesh), mesh)
         t0 = time.perf_counter()
         compiled = fn.lower(cfg, keys).compile()
         compile_s = time.perf_counter() - t0
@@ -69,6 +73,7 @@ def main(argv=None) -> int:
             final, hist = compiled(keys)
             jax.block_until_ready(hist)
             times.append(time.perf_counter() - t0)
+        hist = sharding.unpad(hist, n)
         curve = "final_state_mse_policy" if "final_state_mse_policy" in hist else "final_state_mse_lqr"
         mse = np.asarray(hist[curve])[:, -1].max(axis=-1)  # [seeds], worst condition, last iteration
         ok = bool(np.all(np.asarray(hist["ok"])))
