@@ -267,13 +267,16 @@ def test_walls_bound_the_penetration(m, case):
             hold[0] = d.site("block_tip").xpos[0]
         d.ctrl[:] = _cartesian_push(m, d, f, hold_xy=hold)
         mujoco.mj_step(m, d)
-    assert np.abs(d.qvel).max() < 0.01  # at rest
+    # settled: the bound is a steady-state one (block tip slower than 1 mm/s)
+    jp = np.zeros((3, m.nv))
+    mujoco.mj_jacSite(m, d, jp, None, m.site("block_tip").id)
+    assert np.linalg.norm(jp @ d.qvel) < 1e-3
     ids = {m.geom(w).id for w in walls}
     pen = [-d.contact[i].dist for i in range(d.ncon) if d.contact[i].geom2 in ids or d.contact[i].geom1 in ids]
     assert pen, "the block must be touching the wall"
     bound = _penetration_bound(m, d, F, walls[0])
     assert max(pen) <= bound
-    assert bound < 0.5e-3  # and the bound itself is far below the 40 mm walls (and the 0.3 mm clearance)
+    assert bound < 3e-4  # and the bound is below the 0.3 mm clearance (the walls are 40 mm thick)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,7 +301,9 @@ def test_inserted_pose_and_conditions(m, poses):
         assert bp.block_depth(m, q) == pytest.approx(-height, abs=1e-9)
         assert bp.collision_free(SCENE, q), name
         s, lateral, _ = bp._line_crossing(m, q, q_star)
-        assert np.linalg.norm(lateral) < 2e-4  # the joint line to q* enters between the nubs
+        # the joint line to q* enters between the nubs: the offset was solved to 0.1 mm, and the
+        # crossing is sampled here at 1/4000 of the line (< 0.05 mm of tip travel)
+        assert np.linalg.norm(lateral) < 1.5e-4
 
 
 def test_collision_free_sees_block_hand_and_fixture(m, poses):
@@ -318,16 +323,17 @@ def test_collision_free_sees_block_hand_and_fixture(m, poses):
 
 def test_scripted_20hz_controller_inserts_from_c_and_d(m, poses):
     """A time-varying linear controller at 20 Hz (LQR feedback on the block points, a joint-space
-    reference to q*, a 15 N feedforward push) inserts from C and from D within T = 80 steps,
-    within the torque limits, and ends at rest at q*."""
+    reference to q*, a 15 N feedforward push) inserts from C and from D within the task's
+    T = 80 steps, within the torque limits (the plant clips; the controller needs at most 54 %),
+    and ends at q* at rest by the paper's criterion (final-state MSE < 0.01)."""
+    target = np.concatenate([poses["q*"], np.zeros(6)])
     for name in ("C", "D"):
         Ks, ks = bp.scripted_insertion(m, poses[name], poses["q*"], push=15.0)
         X, U = bp.rollout_c(m, poses[name], Ks, ks)
-        depth = np.array([bp.block_depth(m, x[:6]) for x in X])
-        assert depth[-1] >= bp.INSERTED_DEPTH, name
-        assert np.argmax(depth >= bp.INSERTED_DEPTH) <= 70, name  # with 0.5 s to spare
-        np.testing.assert_allclose(X[-1, :6], poses["q*"], atol=2e-3, err_msg=name)
-        assert np.abs(X[-1, 6:]).max() < 0.01, name
+        assert len(U) == bp.HORIZON
+        assert np.all(np.abs(U) < m.actuator_ctrlrange[:, 1]), name  # never saturated
+        assert bp.block_depth(m, X[-1, :6]) >= bp.INSERTED_DEPTH, name
+        assert np.mean((X[-1] - target) ** 2) < 0.01, name
 
 
 # ---------------------------------------------------------------------------------------------
