@@ -30,11 +30,13 @@ import mujoco
 import numpy as np
 import scipy.linalg
 
+from gmr_jax.tasks import block_in_hole as task
+
 SCENE = pathlib.Path(__file__).resolve().parent.parent / "jaco_mjcf" / "block_in_hole.xml"
-BLOCK_SITES = ("block_tip", "block_tip_corner", "block_top")
-HOLE_DEPTH = 0.05  # m, rim (top face of the walls) to the hole bottom
+BLOCK_SITES = task.BLOCK_POINTS
+HOLE_DEPTH = task.HOLE_DEPTH  # m, rim (top face of the walls) to the hole bottom
 NUB_TOP = 0.005  # m, height of the press-fit nubs above the rim (their radius)
-INSERTED_DEPTH = 0.045  # m, the tip this far below the rim counts as fully inserted
+INSERTED_DEPTH = task.INSERTED_FRACTION * task.HOLE_DEPTH  # m, the tip this far below the rim: inserted
 # Block yaw (rotation about the vertical) at q*: the block's faces are parallel to the walls for
 # any multiple of pi/2; -pi/2 is the one that leaves joint 6 nearest to zero (-0.34 rad).
 YAW = -np.pi / 2
@@ -151,17 +153,6 @@ def condition_pose(m: mujoco.MjModel, height: float, q_target=None, tol: float =
 # Collision check for sampled arm configurations
 
 
-def _colliding_copy(m: mujoco.MjModel) -> mujoco.MjModel:
-    """A copy of the scene in which every geom collides with every other: contype = conaffinity
-    = 1 everywhere and the contact flag on. The scene's excludes (base/link_1) stay and MuJoCo
-    filters parent-child body pairs, as it does by default."""
-    m2 = copy.copy(m)
-    m2.geom_contype[:] = 1
-    m2.geom_conaffinity[:] = 1
-    m2.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-    return m2
-
-
 _CHECKERS: dict = {}
 
 
@@ -175,7 +166,7 @@ def _checker(model_or_path) -> mujoco.MjModel:
     if key not in _CHECKERS:
         m = m if m is not None else mujoco.MjModel.from_xml_path(key)
         # the original stays referenced by the entry, so an id() key is not reused while cached
-        _CHECKERS[key] = (_colliding_copy(m), m)
+        _CHECKERS[key] = (task._colliding_copy(m), m)
     return _CHECKERS[key][0]
 
 
@@ -194,12 +185,7 @@ def collision_free(model_or_path, q) -> bool:
         jaco_mjcf/block_in_hole.xml (the all-colliding copy is cached per model or file).
       q: joint angles [6] (Kinova actuator angles, rad).
     """
-    m = _checker(model_or_path)
-    d = mujoco.MjData(m)
-    d.qpos[:] = np.asarray(q, dtype=np.float64)
-    mujoco.mj_kinematics(m, d)
-    mujoco.mj_collision(m, d)
-    return not any(c.dist < 0 for c in d.contact[: d.ncon])
+    return bool(task.collision_free(_checker(model_or_path), q))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
     records = []
     for (scenario, algorithm), run in runs.items():
         h = run["history"]
+        extra = final_extra(configs[(scenario, algorithm)], h)  # {name_curve: [iterations, S, M]}
         for i, seed in enumerate(seeds):
             rec = {"scenario": scenario, "algorithm": algorithm, "seed": seed}
             for name in ("final_state_mse_lqr", "final_state_mse_policy", "sample_cost", "kl",
@@ -47,6 +48,8 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                 rec["final_state_mse"] = rec["final_state_mse_lqr"]
             if "final_state_mse_policy" in h:
                 rec["final_state_mse"] = rec["final_state_mse_policy"]
+            for name, ok in extra.items():
+                rec[name + "_per_condition"] = jsonable(ok[:, i])
             if "robustness" in run:
                 rob = run["robustness"]
                 rec["robustness"] = {
@@ -70,6 +73,22 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                "runs": records}
     (out / "results.json").write_text(json.dumps(results, indent=1))
     return results
+
+
+# The final states of the noiseless executions after every iteration, per curve.
+FINAL_STATES = (("eval_final_x", "lqr"), ("policy_eval_final_x", "policy"))
+
+
+def final_extra(cfg, history) -> dict:
+    """The task's further success measures (e.g. "inserted") of every iteration's noiseless
+    executions: {"<name>_<lqr|policy>": bool [iterations, seeds, M]}; empty for reach."""
+    task = tasks.of(cfg)
+    out = {}
+    for key, curve in FINAL_STATES:
+        if key in history:
+            for name, ok in task.success_extra(cfg, np.asarray(history[key])).items():
+                out[f"{name}_{curve}"] = np.asarray(ok)
+    return out
 
 
 def _curves(run):
@@ -224,6 +243,11 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
             lines.append(f"- {_label(algorithm, curve)}: final-state MSE < {thr} at the last iteration "
                          f"for {int((final < thr).sum())}/{len(final)} seeds "
                          f"(< {thr2}: {int((final < thr2).sum())}/{len(final)}).")
+        for name, ok in final_extra(cfg, run["history"]).items():
+            per_cond = ok[-1].sum(axis=0)  # [M]: seeds at the last iteration
+            conds = task.scenarios[scenario]
+            lines.append(f"- {name.replace('_', ' ')} at the last iteration: " + ", ".join(
+                f"{c} {int(k)}/{ok.shape[1]} seeds" for c, k in zip(conds, per_cond)) + ".")
         lines.append("")
     path.write_text("\n".join(lines))
 
@@ -269,6 +293,11 @@ def robustness_table(task: tasks.Task, runs) -> list[str]:
     lines.append("Loose threshold 0.1 (the paper's text): " + "; ".join(
         f"{s}/{a}: {runs[(s, a)]['robustness']['success_loose'].sum(axis=-1).mean():.1f}"
         for s in scenarios for a in algs if (s, a) in runs and "robustness" in runs[(s, a)]) + ".")
+    names = sorted({n for r in runs.values() for n in r.get("robustness", {}).get("extra", {})})
+    for name in names:
+        lines.append(f"Also {name} (mean over seeds): " + "; ".join(
+            f"{s}/{a}: {np.asarray(runs[(s, a)]['robustness']['extra'][name]).sum(axis=-1).mean():.1f}"
+            for s in scenarios for a in algs if (s, a) in runs and "robustness" in runs[(s, a)]) + ".")
     lines.append("")
     return lines
 

@@ -82,7 +82,7 @@ def scene_path(scene: str) -> pathlib.Path:
 
 
 class _Chain(NamedTuple):
-    """Static data of the kinematic chain from the world to the end-effector site (numpy)."""
+    """Static data of the kinematic chain from the world to a site (numpy)."""
 
     body_pos: tuple  # per body on the chain, root first: [3]
     body_quat: tuple  # [4] (w, x, y, z)
@@ -167,8 +167,10 @@ def _validate(m: mujoco.MjModel, path: pathlib.Path) -> None:
             fail(f"actuator {i} needs a symmetric ctrlrange (the torque limit), got [{lo}, {hi}]")
 
 
-def _chain(m: mujoco.MjModel) -> _Chain:
-    sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, EE_SITE)
+def _chain(m: mujoco.MjModel, site: str = EE_SITE) -> _Chain:
+    sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
+    if sid < 0:
+        raise MJCFError(f"no site named {site!r}")
     bodies = []
     b = int(m.site_bodyid[sid])
     while b != 0:
@@ -182,7 +184,7 @@ def _chain(m: mujoco.MjModel) -> _Chain:
         js = []
         for j in range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]):
             if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
-                raise MJCFError(f"end-effector chain: joint {j} is not a hinge")
+                raise MJCFError(f"chain of site {site!r}: joint {j} is not a hinge")
             js.append((int(m.jnt_qposadr[j]), np.array(m.jnt_axis[j]), np.array(m.jnt_pos[j])))
         joints.append(tuple(js))
     return _Chain(tuple(pos), tuple(quat), tuple(joints), np.array(m.site_pos[sid]))
@@ -258,8 +260,17 @@ def _axis_rotation(axis: np.ndarray, angle: Array) -> Array:
             + (1 - jnp.cos(angle)) * jnp.asarray(k @ k, dtype))
 
 
-def end_effector(s: Sim, q: Array) -> Array:
-    """World position of the ``end_effector`` site, [nq] → [3] (m).
+def site_chain(s: Sim, site: str) -> _Chain:
+    """The kinematic chain of a site of the scene (cached per plant)."""
+    key = ("chain", site)
+    if key not in s._cache:
+        with s._lock:
+            s._cache.setdefault(key, _chain(s.model, site))
+    return s._cache[key]
+
+
+def site_position(s: Sim, q: Array, site: str) -> Array:
+    """World position of a site, [nq] → [3] (m).
 
     A plain JAX chain of the compiled model's body frames and hinge rotations (the same numbers
     MuJoCo uses, so it agrees with ``site_xpos`` to rounding), jittable, vmappable and
@@ -271,7 +282,7 @@ def end_effector(s: Sim, q: Array) -> Array:
     dtype = q.dtype
     R = jnp.eye(3, dtype=dtype)
     p = jnp.zeros(3, dtype=dtype)
-    c = s.chain
+    c = s.chain if site == EE_SITE else site_chain(s, site)
     for pos, quat, joints in zip(c.body_pos, c.body_quat, c.joints):
         p = p + R @ jnp.asarray(pos, dtype)
         R = R @ jnp.asarray(_quat_to_mat(quat), dtype)
@@ -281,6 +292,11 @@ def end_effector(s: Sim, q: Array) -> Array:
             p = p + R @ (jnp.asarray(anchor, dtype) - Rj @ jnp.asarray(anchor, dtype))
             R = R @ Rj
     return p + R @ jnp.asarray(c.site_pos, dtype)
+
+
+def end_effector(s: Sim, q: Array) -> Array:
+    """World position of the ``end_effector`` site, [nq] → [3] (m); see :func:`site_position`."""
+    return site_position(s, q, EE_SITE)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 # name -> module defining TASK
 TASKS = {
     "reach": "gmr_jax.tasks.reach",
+    "block_in_hole": "gmr_jax.tasks.block_in_hole",
 }
 
 
