@@ -17,6 +17,12 @@ Prints a markdown table to stdout and writes everything as JSON to ``--out``. Ex
     python -m benchmarks.rollout --help
     python -m benchmarks.rollout --mode sweep --batch-sizes 1,64,1024,8192,32768 --out sweep.json
     python -m benchmarks.rollout --mode compare --out cpu.json
+    python -m benchmarks.rollout --task block_in_hole --batch-sizes 1,64,1024,4096 --out bih.json
+    python -m benchmarks.rollout --task block_in_hole --mode sweep --backend mujoco --batch-sizes 1,10,100
+
+``--task`` takes the scene, the physics substeps, the initial states (around the task's first
+condition) and the controllers' target (the task's) from a registered task, so that the
+block-in-hole rollouts push the block into the fixture (contacts) as training does.
 
 On NVIDIA GPUs, ``XLA_FLAGS=--xla_gpu_triton_gemm_any=true`` may help (MJX docs); the flags in
 effect are recorded in the JSON.
@@ -37,8 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import config, noise, sim, types
-from gmr_jax.tasks import reach as reach_task
+from gmr_jax import config, noise, sim, tasks, types
 
 DEFAULT_BATCHES = "1,8,64,512,2048,8192,16384,32768"
 
@@ -52,9 +57,12 @@ def parse_args(argv=None):
                         "backend for --cpu-rollouts rollouts; auto: sweep on a GPU, compare otherwise")
     p.add_argument("--batch-sizes", default=DEFAULT_BATCHES, help=f"comma-separated (default {DEFAULT_BATCHES})")
     p.add_argument("--T", type=int, default=80, help="control steps per rollout (default 80)")
-    p.add_argument("--substeps", type=int, default=config.SimConfig.substeps,
-                   help=f"physics steps per control step (default {config.SimConfig.substeps})")
-    p.add_argument("--scene", default=config.SimConfig.scene, help="MJCF scene (default reach)")
+    p.add_argument("--task", default="reach", choices=tuple(tasks.TASKS),
+                   help="the task whose scene, substeps, conditions and target are used (default reach)")
+    p.add_argument("--substeps", type=int, default=None, help="physics steps per control step (default: the task's)")
+    p.add_argument("--scene", default=None, help="MJCF scene (default: the task's)")
+    p.add_argument("--backend", choices=("mjx", "mujoco"), default="mjx",
+                   help="sweep: the backend timed over the batch sizes (default mjx; mujoco skips the bare scan)")
     p.add_argument("--repeats", type=int, default=5, help="timed calls per measurement (median reported)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                    help="simulation precision (float64 enables jax_enable_x64)")
@@ -62,18 +70,23 @@ def parse_args(argv=None):
     p.add_argument("--no-ee", action="store_true", help="rollout without end-effector positions")
     p.add_argument("--skip-bare", action="store_true", help="sweep: do not time the bare mjx.step scan")
     p.add_argument("--out", default=None, help="write results as JSON to this file")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    task_cfg = config.make(args.task)
+    args.scene = args.scene or task_cfg.sim.scene
+    args.substeps = args.substeps or task_cfg.sim.substeps
+    args.x0 = np.asarray(tasks.initial_states(task_cfg.task, jnp.float64))[0]
+    args.target = np.asarray(tasks.target_state(task_cfg.task, jnp.float64))[:6]
+    return args
 
 
 # ---------------------------------------------------------------------------------------------
 # Inputs
 
 
-def make_inputs(s: sim.Sim, B: int, T: int, dtype, seed: int = 0):
-    """A batch of LG controllers (PD towards the reach target plus random gains), initial states
-    near condition A and smoothed noise; all on the device."""
+def make_inputs(s: sim.Sim, B: int, T: int, dtype, x0: np.ndarray, tgt: np.ndarray, seed: int = 0):
+    """A batch of LG controllers (PD towards the target joint angles ``tgt`` plus random gains),
+    initial states near ``x0`` [12] and smoothed noise; all on the device."""
     rng = np.random.default_rng(seed)
-    tgt = np.array(reach_task.TARGET)
     kp = np.array([20, 20, 10, 3, 3, 0.5])
     kd = np.array([8, 5, 3, 1, 1, 0.1])
     K0 = np.concatenate([-np.diag(kp), -np.diag(kd)], axis=1)
@@ -81,7 +94,7 @@ def make_inputs(s: sim.Sim, B: int, T: int, dtype, seed: int = 0):
     k = np.broadcast_to(kp * tgt, (B, T, s.dU))
     chol = np.broadcast_to(np.eye(s.dU) * 0.5, (B, T, s.dU, s.dU))
     pol = types.LinearGaussianPolicy(*(jnp.asarray(a, dtype) for a in (K, k, chol @ chol, chol, np.linalg.inv(chol @ chol))))
-    x0 = np.concatenate([np.array(reach_task.INITIAL["A"]) + 0.05 * rng.normal(size=(B, 6)), np.zeros((B, 6))], axis=1)
+    x0 = np.concatenate([x0[:6] + 0.05 * rng.normal(size=(B, 6)), np.zeros((B, 6))], axis=1)
     keys = jax.random.split(jax.random.key(seed), B)
     eps = jax.jit(jax.vmap(lambda kk: noise.smooth_noise(kk, T, s.dU, config.NoiseConfig(), dtype=dtype)))(keys)
     return pol, jnp.asarray(x0, dtype), eps
@@ -126,18 +139,18 @@ def bare_scan_fn(s: sim.Sim, n_physics: int):
 
 
 def sweep(args, dtype):
-    cfg = config.SimConfig(scene=args.scene, substeps=args.substeps, backend="mjx")
+    cfg = config.SimConfig(scene=args.scene, substeps=args.substeps, backend=args.backend)
     s = sim.make_sim(cfg)
     T, n_phys = args.T, args.T * args.substeps
     rows = []
     for B in [int(b) for b in args.batch_sizes.split(",") if b]:
-        pol, x0, eps = make_inputs(s, B, T, dtype)
+        pol, x0, eps = make_inputs(s, B, T, dtype, args.x0, args.target)
         c_roll, t_roll, _, out = timed(rollout_fn(s, not args.no_ee), (pol, x0, eps), args.repeats)
         nan = bool(jnp.any(sim.diverged(*out)))
-        row = {"batch": B, "T": T, "substeps": args.substeps, "physics_steps": B * n_phys,
+        row = {"batch": B, "backend": args.backend, "T": T, "substeps": args.substeps, "physics_steps": B * n_phys,
                "rollout_s": t_roll, "rollout_compile_s": c_roll,
                "rollout_steps_per_s": B * n_phys / t_roll, "rollout_diverged": nan}
-        if not args.skip_bare:
+        if not args.skip_bare and args.backend == "mjx":
             u = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, size=(B, s.dU)), dtype)
             c_bare, t_bare, _, _ = timed(bare_scan_fn(s, n_phys), (x0, u), args.repeats)
             row.update({"bare_s": t_bare, "bare_compile_s": c_bare,
@@ -154,7 +167,7 @@ def compare(args, dtype):
     res = {}
     for backend in ("mujoco", "mjx"):
         s = sim.make_sim(config.SimConfig(scene=args.scene, substeps=args.substeps, backend=backend))
-        pol, x0, eps = make_inputs(s, n, T, dtype)
+        pol, x0, eps = make_inputs(s, n, T, dtype, args.x0, args.target)
         c, t, first, out = timed(rollout_fn(s, not args.no_ee), (pol, x0, eps), args.repeats)
         res[backend] = {"compile_s": c, "run_s": t, "first_call_s": first,
                         "steps_per_s": n * T * args.substeps / t, "X": np.asarray(out[0].X, np.float64)}
@@ -179,7 +192,8 @@ def environment():
 
 
 def markdown(env, rows, cmp):
-    lines = [f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, mujoco {env['mujoco']}, {env['date']}", ""]
+    lines = [f"Device: {env['device']} ({env['backend']}), jax {env['jax']}, mujoco {env['mujoco']}, {env['date']}; "
+             f"scene {env['scene']}, {env['substeps']} substeps", ""]
     if rows:
         lines += ["| batch | rollout M steps/s | bare mjx.step scan M steps/s | ratio | rollout s | rollout compile s | bare compile s |",
                   "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -207,13 +221,14 @@ def main(argv=None):
     mode = args.mode
     if mode == "auto":
         mode = "sweep" if jax.default_backend() == "gpu" else "compare"
-    env = environment()
+    env = {**environment(), "scene": args.scene, "substeps": args.substeps}
     rows = sweep(args, dtype) if mode in ("sweep", "both") else []
     cmp = compare(args, dtype) if mode in ("compare", "both") else None
     print(markdown(env, rows, cmp))
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"environment": env, "args": vars(args), "mode": mode, "sweep": rows, "compare": cmp}, f, indent=2)
+            json.dump({"environment": env, "args": {k: v for k, v in vars(args).items() if k not in ("x0", "target")},
+                       "mode": mode, "sweep": rows, "compare": cmp}, f, indent=2)
 
 
 if __name__ == "__main__":
