@@ -82,7 +82,10 @@ def np_fit_dynamics(prior, X, U, cfg):
     N = X.shape[0]
     D = 2 * dX + dU
     sig_reg = np.zeros((D, D))
-    sig_reg[:dX + dU, :dX + dU] = cfg.regularization * np.eye(dX + dU)
+    if cfg.regularizer == "toolbox":
+        sig_reg[:dX + dU, :dX + dU] = cfg.regularization  # the toolbox's line: numpy broadcasts it
+    else:
+        sig_reg[:dX + dU, :dX + dU] = cfg.regularization * np.eye(dX + dU)
     Fm, fv, dyn = np.zeros((T, dX, dX + dU)), np.zeros((T, dX)), np.zeros((T, dX, dX))
     for t in range(T - 1):
         pts = np.c_[X[:, t], U[:, t], X[:, t + 1]]

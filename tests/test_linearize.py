@@ -134,7 +134,9 @@ def _np_linearize(prior, X, pol_mu, pol_sig_mean, cfg):
         mun = pts.mean(0)
         emp = (pts - mun).T @ (pts - mun) / N
         sigma = (N * emp + Phi + N * m / (N + m) * np.outer(mun - mu0, mun - mu0)) / (N + n0)
-        if t == 0:
+        if t == 0 and cfg.t0_regularizer == "toolbox":
+            sigma[:dX, :dX] += cfg.t0_regularization  # the toolbox's broadcast to every entry
+        elif t == 0:
             sigma[:dX, :dX] += cfg.t0_regularization * np.eye(dX)
         Kt = np.linalg.solve(sigma[:dX, :dX], sigma[:dX, dX:]).T
         Ks.append(Kt)
