@@ -139,3 +139,12 @@ def assert_trees_within(got, ref, tol):
         np.testing.assert_array_equal(a[inf], b[inf], err_msg=f"inf entries, {path}")
         err = _max_abs_diff(a, b)
         assert err <= t, f"max|Δ| = {err:.3e} > tolerance {t:.3e} (scale {_scale(b):.3e}), {path}"
+
+
+def assert_tolerances_small(ref, tol, max_rel: float):
+    """Every floating-point leaf's tolerance is at most ``max_rel`` of the leaf's largest entry:
+    a measured tolerance must stay far below what a real defect would change (a perturbation
+    that flipped a discrete decision of the program would show up here, not pass silently)."""
+    for i, (a, t) in enumerate(zip(jax.tree_util.tree_leaves(ref), tol)):
+        if _is_float(a) and _scale(a) > 0:
+            assert t <= max_rel * _scale(a), f"leaf {i}: tolerance {t:.3e} > {max_rel:g}·{_scale(a):.3e}"
