@@ -148,3 +148,11 @@ def assert_tolerances_small(ref, tol, max_rel: float):
     for i, (a, t) in enumerate(zip(jax.tree_util.tree_leaves(ref), tol)):
         if _is_float(a) and _scale(a) > 0:
             assert t <= max_rel * _scale(a), f"leaf {i}: tolerance {t:.3e} > {max_rel:g}·{_scale(a):.3e}"
+
+
+def affine_tol(K, x, k) -> float:
+    """Absolute bound on the difference of two evaluations of K x + k (batched or not) that sum
+    in different orders: c·(n + 1)·ε·max(|K||x| + |k|), n = len(x) (tests/tolerances.py)."""
+    K, x, k = (np.asarray(a, np.float64) for a in (K, x, k))
+    size = np.einsum("...ij,...j->...i", np.abs(K), np.abs(x)) + np.abs(k)
+    return linear_tol(1.0, x.shape[-1] + 1) * float(size.max())
