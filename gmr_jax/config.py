@@ -225,13 +225,21 @@ class StepConfig:
                              f"step.max_step_mult={self.max_step_mult!r}")
 
 
+# How a regularisation value enters a block of a joint covariance (dynamics.regularizer_matrix):
+# "ridge" adds value·I (what the toolbox meant, the default), "toolbox" adds value to every entry
+# of the block (value·11ᵀ, the toolbox's numpy broadcast, rank one), for exact toolbox numerics.
+REGULARIZERS = ("ridge", "toolbox")
+
+
 @dataclass(frozen=True)
 class DynamicsConfig:
     """Dynamics fit with the GMM prior (mdgps-toolbox.md §3; the authors' Jaco values, gmr-method.md §2).
 
     Attributes:
-      regularization: ridge added to the (x, u) block of the joint covariance (the toolbox adds a
-        rank-one 1e-6·11ᵀ; we add the ridge it meant, see dynamics.py).
+      regularization: added to the (x, u) block of the joint covariance, as set by ``regularizer``.
+      regularizer: "ridge" (default): regularization·I; "toolbox": regularization added to every
+        entry of the block (the toolbox's rank-one 1e-6·11ᵀ, which does not make a rank-deficient
+        block invertible; see dynamics.py).
       max_clusters, min_samples_per_cluster: GMM size rule K = max(2, min(max, ⌊n/min⌋)).
       max_samples: trajectories kept in the prior's ring buffer.
       strength: prior strength.
@@ -246,8 +254,10 @@ class DynamicsConfig:
     strength: float = 1.0
     em_iterations: int = 100
     initial_state_var: float = 1e-6
+    regularizer: str = "ridge"
 
     def __post_init__(self):
+        check_choice("dynamics.regularizer", self.regularizer, REGULARIZERS)
         for name in ("regularization", "strength", "initial_state_var"):
             check_nonnegative(f"dynamics.{name}", getattr(self, name))
         for name in ("max_clusters", "min_samples_per_cluster", "max_samples", "em_iterations"):
@@ -270,8 +280,10 @@ class PolicyPriorConfig:
       em_iterations: EM budget per update (toolbox: 100).
       mode: "add" (append to the store, toolbox default) or "replace" (only the current samples,
         the MuJoCo MDGPS example).
-      t0_regularization: ridge on the state block of the joint covariance at t = 0 (toolbox 1e-8,
-        broadcast there to every entry of the block; we add the ridge it meant).
+      t0_regularization: added to the state block of the joint covariance at t = 0 (toolbox 1e-8),
+        as set by ``t0_regularizer``.
+      t0_regularizer: "ridge" (default): t0_regularization·I; "toolbox": t0_regularization added
+        to every entry of the block (the toolbox's broadcast, rank one; see linearize.py).
     """
 
     min_samples_per_cluster: int = 20
@@ -281,8 +293,10 @@ class PolicyPriorConfig:
     em_iterations: int = 100
     mode: str = "add"
     t0_regularization: float = 1e-8
+    t0_regularizer: str = "ridge"
 
     def __post_init__(self):
+        check_choice("policy_prior.t0_regularizer", self.t0_regularizer, REGULARIZERS)
         for name in ("min_samples_per_cluster", "max_clusters", "max_samples", "em_iterations"):
             check_positive_int(f"policy_prior.{name}", getattr(self, name))
         check_nonnegative("policy_prior.strength", self.strength)

@@ -11,7 +11,8 @@ One condition per call; every function is pure and vmappable over a leading cond
 
 Deviations from the toolbox (plain defects, see §10 of the reference), marked ``FIX`` below:
 - the (x, u)-block regularisation is a ridge ``regularization·I``, not the rank-one
-  ``regularization·11ᵀ`` that the toolbox's broadcast produces;
+  ``regularization·11ᵀ`` that the toolbox's broadcast produces (``DynamicsConfig.regularizer =
+  "toolbox"`` restores the broadcast, for exact toolbox numerics; ``regularizer_matrix``);
 - the ring buffer keeps the last ``max_samples`` trajectories, not ``max_samples − 1``;
 - the x0 prior term is (Φ₀ + N·m/(N+m)·ΔΔᵀ)/(N + n₀), Φ₀ included in the division.
 """
@@ -24,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from gmr_jax import linalg
-from gmr_jax.config import DynamicsConfig
+from gmr_jax.config import REGULARIZERS, DynamicsConfig
 from gmr_jax.gmm import gmm_empty, gmm_update, niw_prior, num_clusters
 from gmr_jax.types import GMM, Dynamics
 
@@ -119,6 +120,24 @@ def update_dynamics_prior(prior: DynamicsPrior, key, X: Array, U: Array, cfg: Dy
     K = num_clusters(n_stored * (T - 1), cfg.min_samples_per_cluster, cfg.max_clusters)
     gmm = gmm_update(prior.gmm, key, pts.reshape(S * (T - 1), D), mask, K, cfg.em_iterations)
     return DynamicsPrior(X=Xb, U=Ub, count=count, gmm=gmm)
+
+
+def regularizer_matrix(kind: str, value: float, n: int, D: int, dtype) -> Array:
+    """[D, D] zeros with ``value`` added to the leading [n, n] block of a joint covariance.
+
+    kind "ridge": value·I on the block (FIX, the default). kind "toolbox": value added to every
+    entry of the block, value·11ᵀ, which is what the toolbox's ``sig_reg[:n, :n] = value`` numpy
+    broadcast does. The rank-one form shifts the block only along 11ᵀ, so it cannot make a
+    rank-deficient block (the transitions of a deterministic plant, a deterministic x₀)
+    invertible; it is kept as an option to reproduce the toolbox's numbers.
+    """
+    if kind == "ridge":
+        block = value * jnp.eye(n, dtype=dtype)
+    elif kind == "toolbox":
+        block = jnp.full((n, n), value, dtype)
+    else:
+        raise ValueError(f"regularizer={kind!r}: allowed values are {REGULARIZERS}")
+    return jnp.zeros((D, D), dtype).at[:n, :n].set(block)
 
 
 def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array, d1: int, d2: int,
@@ -223,9 +242,9 @@ def fit_dynamics(prior: DynamicsPrior, X: Array, U: Array, cfg: DynamicsConfig) 
     D = 2 * dX + dU
     Y = jnp.swapaxes(transition_points(X, U), 0, 1)  # [T−1, N, D]
     dwts = jnp.full((N,), 1.0 / N, dtype)
-    # FIX: ridge on the (x, u) diagonal; the toolbox's sig_reg[:dX+dU, :dX+dU] = reg broadcasts
-    # to a rank-one reg·11ᵀ, which does not regularise.
-    sig_reg = jnp.zeros((D, D), dtype).at[:dxu, :dxu].set(cfg.regularization * jnp.eye(dxu, dtype=dtype))
+    # FIX (default "ridge"): ridge on the (x, u) diagonal; the toolbox's sig_reg[:dX+dU, :dX+dU] =
+    # reg broadcasts to a rank-one reg·11ᵀ, which does not regularise ("toolbox").
+    sig_reg = regularizer_matrix(cfg.regularizer, cfg.regularization, dxu, D, dtype)
     has_gmm = prior.gmm.initialized
 
     def step(pts):

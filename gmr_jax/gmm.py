@@ -193,18 +193,26 @@ def _init_params(key, data: Array, mask: Array, k: Array, K_max: int):
 
 
 def _m_step(data: Array, mask: Array, logobs: Array, active: Array, k: Array):
-    """Toolbox M-step: masses, reboot of tiny clusters, means, covariances (+1e-6·I)."""
+    """Toolbox M-step: masses, reboot of tiny clusters, means, covariances (+1e-6·I).
+
+    Masses and weights are computed in the log domain, as in the toolbox:
+    log r_ni = logobs_ni − logsumexp_j logobs_nj;  logmass_i = logsumexp_n log r_ni, renormalised
+    by logsumexp_i;  w_ni = exp(log r_ni − logsumexp_n log r_ni). A cluster far from every point
+    has responsibilities that all underflow to 0 in the linear domain (log of their sum: −inf,
+    and the cluster could never receive mass again); in the log domain its log-mass stays finite.
+    """
     dtype = data.dtype
     D = data.shape[-1]
-    r = _responsibilities(logobs, mask, active)  # [n, K]
-    s = r.sum(0)  # [K]
-    logmass = jnp.log(s) - jnp.log(s.sum())
+    valid = mask[:, None] & active[None, :]
+    logr = jnp.where(valid, logobs - logsumexp(logobs, axis=1, keepdims=True), -jnp.inf)  # [n, K]
+    log_s = logsumexp(logr, axis=0)  # [K], −inf only for inactive clusters
+    logmass = log_s - logsumexp(log_s)
     # Reboot: a cluster with almost no mass is refitted on all points with equal weights; its
     # (tiny) log-mass is kept, as in the toolbox.
     reboot = active & (jnp.exp(logmass) < REBOOT_MASS / k.astype(dtype))
     n_valid = jnp.maximum(mask.sum(), 1).astype(dtype)
     w = jnp.where(reboot[None, :], (mask / n_valid)[:, None].astype(dtype),
-                  r / jnp.where(s > 0, s, 1.0)[None, :])
+                  jnp.exp(logr - jnp.where(jnp.isfinite(log_s), log_s, 0.0)[None, :]))
     w = jnp.where(active[None, :], w, 0.0)
     # FIX (numerics only): centred scatter instead of Σ w x xᵀ − μμᵀ, identical in exact arithmetic.
     mu, sigma = _weighted_moments(w, data)

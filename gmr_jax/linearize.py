@@ -11,7 +11,9 @@ One condition per call; vmappable over a leading condition axis.
 
 Deviation from the toolbox (``FIX``): the t = 0 regularisation is a ridge
 ``t0_regularization·I`` on the state block; the toolbox broadcasts 1e-8 to every entry of that
-block (rank one), which cannot make a degenerate block (deterministic x₀) invertible.
+block (rank one), which cannot make a degenerate block (deterministic x₀) invertible
+(``PolicyPriorConfig.t0_regularizer = "toolbox"`` restores the broadcast; see
+``dynamics.regularizer_matrix``).
 
 Also here: ``linearize_policy_autodiff``, the exact first-order expansion of a differentiable
 policy around given states (the option for GMR policies).
@@ -25,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from gmr_jax.config import POLICY_PRIOR_MODES, PolicyPriorConfig
-from gmr_jax.dynamics import gauss_fit_joint_prior, ring_insert, stored_mask
+from gmr_jax.dynamics import gauss_fit_joint_prior, regularizer_matrix, ring_insert, stored_mask
 from gmr_jax.gmm import gmm_empty, gmm_update, niw_prior, num_clusters
 from gmr_jax.types import GMM
 
@@ -137,9 +139,10 @@ def linearize_policy(prior: PolicyPrior, X: Array, pol_mu: Array, pol_sig: Array
     pol_sig = _collapse_pol_sig(jnp.asarray(pol_sig, dtype), T)
     Y = jnp.swapaxes(jnp.concatenate([X, pol_mu.astype(dtype)], axis=-1), 0, 1)  # [T, N, D]
     dwts = jnp.full((N,), 1.0 / N, dtype)
-    # FIX: ridge on the x block at t = 0 only (toolbox: 1e-8 broadcast over the block).
-    ridge = jnp.zeros((D, D), dtype).at[:dX, :dX].set(cfg.t0_regularization * jnp.eye(dX, dtype=dtype))
-    sig_reg = jnp.zeros((T, D, D), dtype).at[0].set(ridge)
+    # FIX (default "ridge"): ridge on the x block at t = 0 only (toolbox: 1e-8 broadcast over the
+    # block, "toolbox").
+    reg0 = regularizer_matrix(cfg.t0_regularizer, cfg.t0_regularization, dX, D, dtype)
+    sig_reg = jnp.zeros((T, D, D), dtype).at[0].set(reg0)
 
     def step(pts, reg):
         mu0, Phi, m, n0 = niw_prior(prior.gmm, pts, cfg.strength)

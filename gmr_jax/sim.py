@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib.resources
 import os
 import pathlib
 import threading
@@ -48,13 +49,18 @@ from gmr_jax.config import SimConfig
 Array = jax.Array
 
 def _mjcf_dir() -> pathlib.Path:
-    """``$GMR_JAX_MJCF_DIR``, else ``jaco_mjcf/`` next to the package (editable install or a
-    checkout), else ``./jaco_mjcf``."""
+    """``$GMR_JAX_MJCF_DIR``, else the package data ``gmr_jax/jaco_mjcf/`` (an installed wheel),
+    else ``jaco_mjcf/`` next to the package (a checkout or an editable install)."""
     env = os.environ.get("GMR_JAX_MJCF_DIR")
     if env:
         return pathlib.Path(env).expanduser().resolve()
-    beside = pathlib.Path(__file__).resolve().parent.parent / "jaco_mjcf"
-    return beside if beside.is_dir() else pathlib.Path.cwd() / "jaco_mjcf"
+    # A wheel installs the repository's jaco_mjcf/ as gmr_jax/jaco_mjcf/ (pyproject.toml's
+    # package-dir). MuJoCo reads files by path (and resolves the scene's <include> beside it), so
+    # only a package on the file system counts.
+    packaged = importlib.resources.files("gmr_jax") / "jaco_mjcf"
+    if isinstance(packaged, pathlib.Path) and packaged.is_dir():
+        return packaged.resolve()
+    return pathlib.Path(__file__).resolve().parent.parent / "jaco_mjcf"
 
 
 MJCF_DIR = _mjcf_dir()

@@ -5,7 +5,6 @@ Pushes that measure forces run the controller at the physics rate (2 ms) in C Mu
 force at the block is known exactly; the 20 Hz checks go through the same plant as training.
 """
 
-import copy
 import pathlib
 
 import jax.numpy as jnp

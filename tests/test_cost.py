@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
+
 from gmr_jax import cost
 from gmr_jax.tasks.reach import TARGET as REACH_TARGET, CostConfig, reach_cost
 
@@ -109,9 +111,12 @@ def test_norm_terms_match_numpy(norm):
         wp = rng.uniform(0.1, 2.0, size=5)
         l1, l2, alpha = 0.7, 1.3, 0.05
         got = fn(jnp.asarray(d), jnp.asarray(wp), l1, l2, alpha)
-        want = ref(d, wp, l1, l2, alpha)
-        for g, w in zip(got, want):
-            np.testing.assert_allclose(np.asarray(g), w, rtol=1e-12, atol=1e-12)
+        # Tolerance from the computation (tests/tolerances.py): the numpy formulas rerun on
+        # inputs perturbed by ε relative, SAFETY times the spread (d2 subtracts an outer product
+        # from a diagonal: cancellation shows up in the spread).
+        want, tol = measured_tol(lambda dd, ww: ref(dd, ww, l1, l2, alpha), (d, wp), SAFETY)
+        assert_tolerances_small(want, tol, 1e-10)
+        assert_trees_within(tuple(got), tuple(want), tol)
         # d1, d2 are the exact derivatives of l (this is where the log-l2 factor 2 matters).
         f = lambda dd: float(fn(jnp.asarray(dd), jnp.asarray(wp), l1, l2, alpha)[0])
         np.testing.assert_allclose(fd_grad(f, d), np.asarray(got[1]), rtol=1e-6, atol=1e-8)
@@ -135,7 +140,9 @@ def _check_expansion_fd(cfn, x, u, t, exact_hessian=True):
     y = np.concatenate([x, u])
     l, c, C = (np.asarray(a) for a in expand(y, t))
     f = lambda yy: float(value(yy, t))
-    np.testing.assert_allclose(l, f(y), rtol=1e-13)
+    # The value and the expansion are two programs: tolerance from the computation
+    # (tests/tolerances.py), the value rerun at y perturbed by ε relative, SAFETY times the spread.
+    assert_trees_within(l, *measured_tol(lambda yy: value(yy, t), (y,), SAFETY))
     np.testing.assert_allclose(c, fd_grad(f, y), rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(C, C.T, atol=1e-14)
     if exact_hessian:
@@ -153,10 +160,11 @@ def test_state_cost_expansion_is_exact(norm):
     u = rng.normal(size=dU)
     for t in (0, T - 1):
         l, c, C = _check_expansion_fd(cfn, x, u, t)
-        ref = (np_l1l2 if norm == "l1l2" else np_logl2)(x - TARGET, wp * r[t], 0.5, 1.5, 1e-2)
-        np.testing.assert_allclose(l, ref[0], rtol=1e-12)
-        np.testing.assert_allclose(c[:dX], ref[1], rtol=1e-12, atol=1e-14)
-        np.testing.assert_allclose(C[:dX, :dX], ref[2], rtol=1e-12, atol=1e-14)
+        np_fn = np_l1l2 if norm == "l1l2" else np_logl2
+        # Tolerance from the computation, as in test_norm_terms_match_numpy.
+        ref, tol = measured_tol(lambda xx, ww: np_fn(xx - TARGET, ww * r[t], 0.5, 1.5, 1e-2), (x, wp), SAFETY)
+        assert_tolerances_small(ref, tol, 1e-10)
+        assert_trees_within((l, c[:dX], C[:dX, :dX]), tuple(ref), tol)
         assert np.all(c[dX:] == 0) and np.all(C[dX:] == 0) and np.all(C[:, dX:] == 0)
 
 
@@ -165,9 +173,11 @@ def test_action_cost():
     cfn = cost.action_cost(wu)
     x, u = rng.normal(size=dX), rng.normal(size=dU)
     l, c, C = _check_expansion_fd(cfn, x, u, 2)
-    np.testing.assert_allclose(l, 0.5 * np.sum(wu * u**2), rtol=1e-14)
-    np.testing.assert_allclose(c[dX:], wu * u, rtol=1e-14)
-    np.testing.assert_allclose(C[dX:, dX:], np.diag(wu), rtol=1e-14)
+    # A sum of dU positive terms (c·(dU + 2)·ε relative, tests/tolerances.py), a product (one
+    # rounding), the weights themselves (exact).
+    assert_close(l, 0.5 * np.sum(wu * u**2), linear_tol(1.0, dU + 2))
+    assert_close(c[dX:], wu * u, linear_tol(1.0, 1))
+    np.testing.assert_array_equal(C[dX:, dX:], np.diag(wu))
     assert np.all(C[:dX] == 0) and np.all(c[:dX] == 0)
 
 
@@ -179,10 +189,18 @@ def test_cost_sum_and_autodiff_wrapper():
     s = cost.cost_sum([a, b, plain], [2.0, 0.5, 3.0])
     x, u = TARGET + rng.normal(size=dX), rng.normal(size=dU)
     # The sum's expansion is the weighted sum of the parts' (one compiled call for all of them).
-    parts = jax.jit(lambda x_, u_: [c.expand(x_, u_, 1) for c in (a, b, cost.from_function(plain))])(x, u)
+    parts = jax.jit(lambda x_, u_: [c.expand(x_, u_, 1) for c in (a, b, cost.from_function(plain))])
+
+    def weighted(x_, u_):
+        p = parts(x_, u_)
+        return tuple(2 * p[0][k] + 0.5 * p[1][k] + 3 * p[2][k] for k in range(3))
+
     l, c, C = _check_expansion_fd(s, x, u, 1)  # value, gradient, Hessian vs finite differences
-    for k, got in enumerate((l, c, C)):
-        np.testing.assert_allclose(got, 2 * parts[0][k] + 0.5 * parts[1][k] + 3 * parts[2][k], rtol=1e-13)
+    # Two programs: tolerance from the computation (tests/tolerances.py), the weighted parts
+    # rerun at (x, u) perturbed by ε relative, SAFETY times the spread.
+    want, tol = measured_tol(weighted, (x, u), SAFETY)
+    assert_tolerances_small(want, tol, 1e-10)
+    assert_trees_within((l, c, C), want, tol)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -201,13 +219,19 @@ def test_ee_cost_is_gauss_newton(norm):
     value, expand = _jitted(cfn)
     y = np.concatenate([x, u])
     l, c, C = (np.asarray(a) for a in expand(y, t))
-    q = x[:6]
-    J = toy_ee_jac(q)
-    d = np.asarray(toy_ee(jnp.asarray(q))) - target_ee
-    ref = (np_l1l2 if norm == "l1l2" else np_logl2)(d, wp * r[t], l1, l2, alpha)
-    np.testing.assert_allclose(l, ref[0], rtol=1e-12)
-    np.testing.assert_allclose(c[:6], J.T @ ref[1], rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(C[:6, :6], J.T @ ref[2] @ J, rtol=1e-10, atol=1e-12)
+    np_fn = np_l1l2 if norm == "l1l2" else np_logl2
+
+    def gauss_newton(q):
+        J = toy_ee_jac(q)
+        d = np.asarray(toy_ee(jnp.asarray(q))) - target_ee
+        ref = np_fn(d, wp * r[t], l1, l2, alpha)
+        return ref[0], J.T @ ref[1], J.T @ ref[2] @ J
+
+    # Tolerance from the computation (tests/tolerances.py): the numpy Gauss–Newton terms rerun
+    # at q perturbed by ε relative, SAFETY times the spread.
+    want, tol = measured_tol(gauss_newton, (x[:6],), SAFETY)
+    assert_tolerances_small(want, tol, 1e-10)
+    assert_trees_within((l, c[:6], C[:6, :6]), want, tol)
     # Derivatives only in the joint-angle block.
     assert np.all(c[6:] == 0) and np.all(C[6:] == 0) and np.all(C[:, 6:] == 0)
     # The gradient is exact; the Hessian is Gauss–Newton, not the exact one (toy_ee is curved).
@@ -257,9 +281,15 @@ def test_quadratic_cost_expansion_is_exact_in_absolute_coordinates():
     # The re-centred quadratic reproduces the cost at the expansion points and far from them.
     X2 = np.concatenate([X, TARGET + 3.0 * rng.normal(size=(N, T, dX))])
     U2 = np.concatenate([U, 3.0 * rng.normal(size=(N, T, dU))])
-    true = np.asarray(jax.jit(cost.evaluate_costs, static_argnums=0)(cfn, X2, U2))
-    np.testing.assert_allclose(np.asarray(cs), true[:N], rtol=1e-14)
-    np.testing.assert_allclose(_eval_quadratic(qc, X2, U2), true, rtol=1e-10, atol=1e-10)
+    # Tolerances from the computation (tests/tolerances.py): each side rerun on inputs perturbed
+    # by ε relative, SAFETY times the spread. Far from the expansion points the quadratic's
+    # terms cancel, which its spread shows.
+    true, tol_true = measured_tol(lambda x_, u_: jax.jit(cost.evaluate_costs, static_argnums=0)(cfn, x_, u_),
+                                  (X2, U2), SAFETY)
+    assert_trees_within(cs, true[:N], tol_true)
+    quad, tol_quad = measured_tol(lambda q_, x_, u_: _eval_quadratic(q_, x_, u_), (qc, X2, U2), SAFETY)
+    assert_tolerances_small(quad, tol_quad, 1e-10)
+    assert_trees_within(quad, true, tol_true[0] + tol_quad[0])
 
 
 def test_expansion_averages_over_samples():
@@ -277,20 +307,27 @@ def test_expansion_averages_over_samples():
     assert qc.Cm.shape == (M, T, dX + dU, dX + dU) and cs.shape == (M, N, T)
     assert bool(cost.expansion_is_finite(qc, cs))
     _, expand = _jitted(cfn)
-    # Independent per-sample re-centring in numpy, then the mean over samples.
-    for m in range(M):
+
+    def recentred(Xm, Um):
+        """Independent per-sample re-centring in numpy, then the mean over samples."""
         Cm = np.zeros((T, dX + dU, dX + dU)); cv = np.zeros((T, dX + dU)); cc = np.zeros(T)
+        ls = np.zeros((N, T))
         for n in range(N):
             for t in range(T):
-                y = np.concatenate([X[m, n, t], U[m, n, t]])
+                y = np.concatenate([Xm[n, t], Um[n, t]])
                 l, c, C = (np.asarray(a) for a in expand(y, t))
                 Cm[t] += C / N
                 cv[t] += (c - C @ y) / N
                 cc[t] += (l - c @ y + 0.5 * y @ C @ y) / N
-                np.testing.assert_allclose(float(cs[m, n, t]), l, rtol=1e-13)
-        np.testing.assert_allclose(np.asarray(qc.Cm[m]), Cm, rtol=1e-11, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(qc.cv[m]), cv, rtol=1e-11, atol=1e-11)
-        np.testing.assert_allclose(np.asarray(qc.cc[m]), cc, rtol=1e-11, atol=1e-11)
+                ls[n, t] = l
+        return ls, Cm, cv, cc
+
+    for m in range(M):
+        # Tolerance from the computation (tests/tolerances.py): the numpy re-centring rerun on
+        # the samples perturbed by ε relative, SAFETY times the spread.
+        want, tol = measured_tol(recentred, (X[m], U[m]), SAFETY)
+        assert_tolerances_small(want, tol, 1e-10)
+        assert_trees_within((cs[m], qc.Cm[m], qc.cv[m], qc.cc[m]), want, tol)
     # A NaN sample is flagged.
     Xn = X.copy(); Xn[0, 0, 0, 0] = np.nan
     assert not bool(cost.expansion_is_finite(*qexp(cfn, Xn, U)))
@@ -322,13 +359,20 @@ def test_reach_cost_default():
     want = 0.5 * np.sum(np.asarray(cfg.action_weight) * U[1] ** 2, -1)
     want += 0.5 * np.sum(np.asarray(cfg.state_wp) * d**2, -1)
     want[-1] += 0.5 * cfg.final_multiplier * np.sum(np.asarray(cfg.final_wp) * d[-1] ** 2)
-    np.testing.assert_allclose(cs[1], want, rtol=1e-12)
+    # Sums of dX + dU + dX positive terms per step after one subtraction each (x − target, which
+    # the two programs round alike): c·n·ε relative with n = 2dX + dU + 2 (tests/tolerances.py).
+    n_terms = 2 * dX + dU + 2
+    assert_close(cs[1], want, linear_tol(1.0, n_terms))
     # With an end-effector term: still zero at the target, and it adds ½ w ‖ee − ee*‖².
     cfg_ee = dataclasses.replace(cfg, ee_weight=2.0)
     cs_ee = np.asarray(evaluate(reach_cost(cfg_ee, TARGET, T, ee_fn=toy_ee), X, U))
     assert np.all(np.abs(cs_ee[0]) < 1e-12)
     ee_d = np.asarray(jax.vmap(toy_ee)(X[1, :, :6])) - np.asarray(toy_ee(TARGET[:6]))
-    np.testing.assert_allclose(cs_ee[1], want + np.sum(ee_d**2, -1), rtol=1e-12)
+    # The end-effector difference cancels (nearby points): its error is c·ε·|ee| per coordinate,
+    # not relative to the difference; the squared term's error is 2·|ee_d|·that.
+    ee_err = 2 * np.abs(ee_d).max() * linear_tol(1.0, 8) * np.abs(np.asarray(toy_ee(TARGET[:6]))).max()
+    want_ee = want + np.sum(ee_d**2, -1)
+    assert_close(cs_ee[1], want_ee, linear_tol(1.0, n_terms + 3) + 3 * ee_err / np.abs(want_ee).max())
     with pytest.raises(ValueError, match="ee_fn"):
         reach_cost(cfg_ee, TARGET, T)
     with pytest.raises(ValueError, match="target_x"):

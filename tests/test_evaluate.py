@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
+
 from gmr_jax import config, evaluate, policies, sim, tasks
 
 
@@ -33,16 +35,22 @@ def test_robustness_matches_single_rollouts():
     s = sim.make_sim(CFG.sim)
     target = np.asarray(tasks.target_state(CFG.task))
     train = np.asarray(tasks.initial_states(CFG.task))
-    fn = policies.mean_fn(policies.for_config(CFG), params)
+    def single(p, x):  # one rollout from x, its final state and final-state MSE
+        mean = policies.mean_fn(policies.for_config(CFG), p)
+        final = sim.rollout(s, mean, x, jnp.zeros((CFG.task.T, 6))).X[-1]
+        return final, jnp.mean((final - target) ** 2)
+
     for i in range(4):
-        traj = sim.rollout(s, fn, x0[i], jnp.zeros((CFG.task.T, 6)))
-        final = np.asarray(traj.X[-1])
-        np.testing.assert_allclose(np.asarray(rob.final_x[i]), final, rtol=1e-9, atol=1e-12)
-        mse = np.mean((final - target) ** 2)
-        np.testing.assert_allclose(float(rob.mse[i]), mse, rtol=1e-9)
-        assert bool(rob.success[i]) == (mse < CFG.task.success_threshold)
+        # Tolerance from the computation (tests/tolerances.py): the single rollout rerun from
+        # parameters and a start perturbed by ε relative, SAFETY times the spread (the batched
+        # program rounds the policy's products differently; the rollout carries that forward).
+        (final, mse), tol = measured_tol(single, (params, x0[i]), SAFETY)
+        assert_tolerances_small((final, mse), tol, 1e-8)
+        assert_trees_within((rob.final_x[i], rob.mse[i]), (final, mse), tol)
+        assert bool(rob.success[i]) == (float(mse) < CFG.task.success_threshold)
         dist = np.min(np.linalg.norm(np.asarray(x0[i]) - train, axis=1))
-        np.testing.assert_allclose(float(rob.distance[i]), dist, rtol=1e-9)
+        # A norm of 12 differences and a min: relative error ≤ c·n·ε with n = 12, κ = 1.
+        assert_close(rob.distance[i], dist, linear_tol(1.0, 12))
 
 
 def test_non_finite_final_state_is_a_failure():
@@ -60,11 +68,16 @@ def test_disturbance_sweep_states_and_rates():
     rate, rate_loose, mse = evaluate.disturbance_sweep(CFG, params, radii, per_radius=2)
     assert rate.shape == (2,) and mse.shape == (2, 4)
     x0 = tasks.initial_states(CFG.task)
-    direct = evaluate.robustness(CFG, params, jnp.repeat(x0, 2, axis=0))
-    np.testing.assert_allclose(np.asarray(mse[0]), np.asarray(direct.mse), rtol=1e-9)
+    # The sweep's batch and a direct evaluation are two programs: tolerance from the computation
+    # (tests/tolerances.py), the direct evaluation rerun on inputs perturbed by ε relative.
+    direct, tol = measured_tol(lambda p, x: evaluate.robustness(CFG, p, x).mse, (params, jnp.repeat(x0, 2, axis=0)),
+                               SAFETY)
+    assert_tolerances_small(direct, tol, 1e-8)
+    assert_trees_within(mse[0], direct, tol)
     states = np.asarray(tasks.of(CFG).disturbed_states(CFG, radii, 2, evaluate.ROBUSTNESS_KEY + 1))
     base = np.repeat(np.asarray(x0), 2, axis=0)
-    np.testing.assert_allclose(np.linalg.norm(states[1] - base, axis=-1), 0.3, rtol=1e-12)
+    # a norm of 6 differences: relative error ≤ c·n·ε with n = 6, κ = 1
+    assert_close(np.linalg.norm(states[1] - base, axis=-1), np.full(4, 0.3), linear_tol(1.0, 6))
     np.testing.assert_array_equal(states[:, :, 6:], 0.0)
     mse = np.asarray(mse)
     np.testing.assert_array_equal(np.asarray(rate), (mse < CFG.task.success_threshold).mean(axis=1))

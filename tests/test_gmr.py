@@ -12,6 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tolerances import (SAFETY, affine_tol, assert_close, assert_tolerances_small, assert_trees_within,
+                        linear_tol, measured_tol)
+
 from gmr_jax.config import GMRConfig, SStepConfig
 from gmr_jax.policies import make_policy, make_sstep_data
 from gmr_jax.policies.base import Normalization
@@ -188,15 +191,18 @@ def test_forward_matches_numpy(cfg):
     cov = F.cov(params, jnp.asarray(x))
     refl = F.reflex(params, jnp.asarray(x))
     for b in range(len(x)):
-        u_np, K_np, k_np, S_np, mu_np, _ = _np_reflex(params, x[b], cfg)
-        np.testing.assert_allclose(u[b], u_np, rtol=1e-10, atol=1e-10)
-        np.testing.assert_allclose(refl.K[b], K_np, rtol=1e-10, atol=1e-12)
-        np.testing.assert_allclose(refl.k[b], k_np, rtol=1e-10, atol=1e-10)
-        np.testing.assert_allclose(cov[b], S_np, rtol=1e-10, atol=1e-14)
-        np.testing.assert_allclose(F.encode(params, jnp.asarray(x[b]))[0], mu_np, rtol=1e-10, atol=1e-12)
-    # u = Ψ_K x + Ψ_k with the raw state; a single row equals the batched row
-    np.testing.assert_allclose(u, np.einsum("bij,bj->bi", refl.K, x) + refl.k, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(refl.logdet, np.linalg.slogdet(np.asarray(cov))[1], rtol=1e-10, atol=1e-10)
+        # Tolerance from the computation (tests/tolerances.py): the numpy forward pass rerun on
+        # parameters and state perturbed by ε relative, SAFETY times the spread of each output.
+        ref, tol = measured_tol(lambda p, xb: _np_reflex(p, xb, cfg)[:5], (params, x[b]), SAFETY)
+        assert_tolerances_small(ref, tol, 1e-8)
+        got = (u[b], refl.K[b], refl.k[b], cov[b], F.encode(params, jnp.asarray(x[b]))[0])
+        assert_trees_within(got, tuple(ref), tol)
+    # u = Ψ_K x + Ψ_k with the raw state (two summation orders: affine_tol)
+    assert_trees_within(u, np.einsum("bij,bj->bi", refl.K, x) + refl.k, affine_tol(refl.K, x, refl.k))
+    # log|Ψ_Σ| from the Cholesky factor against LU: |Δ log det| ≤ dU·c·dU·ε·κ (tests/tolerances.py)
+    for b in range(len(x)):
+        kappa = np.linalg.cond(np.asarray(cov[b]))
+        assert abs(float(refl.logdet[b]) - np.linalg.slogdet(np.asarray(cov[b]))[1]) <= dU * linear_tol(kappa, dU)
 
 
 def test_encoder_input_is_bounded_far_from_the_data():
@@ -265,10 +271,12 @@ def test_test_time_latent_is_the_mean():
     u = F.mean(params, x)
     np.testing.assert_array_equal(u, F.mean(params, x))
     mu, _ = F.encode(params, x)
-    np.testing.assert_allclose(u, F.action(params, x, mu), rtol=1e-13, atol=1e-13)
+    # Two programs each time: tolerances from the computation (tests/tolerances.py), the
+    # reference rerun on inputs perturbed by ε relative, SAFETY times the spread.
+    assert_trees_within(u, *measured_tol(F.action, (params, x, mu), SAFETY))
     refl = F.translate(params, mu)
-    np.testing.assert_allclose(F.cov(params, x), refl.cov, rtol=1e-13, atol=1e-15)
-    np.testing.assert_allclose(u, jnp.einsum("bij,bj->bi", refl.K, x) + refl.k, rtol=1e-10, atol=1e-10)
+    assert_trees_within(F.cov(params, x), *measured_tol(lambda p, m: F.translate(p, m).cov, (params, mu), SAFETY))
+    assert_trees_within(u, jnp.einsum("bij,bj->bi", refl.K, x) + refl.k, affine_tol(refl.K, x, refl.k))
     # changing the log σ²_z outputs of the encoder leaves the test-time outputs unchanged …
     net = jax.tree_util.tree_map(lambda a: a, params.net)
     last = net["params"]["encoder"]["Dense_2"]
@@ -284,7 +292,9 @@ def test_test_time_latent_is_the_mean():
     assert abs(float(F.loss(wide, data, key)[0]) - float(F.loss(params, data, key)[0])) > 1e-3
     # the decoder at μ_z against numpy
     xhat = F.decode(params, mu)
-    np.testing.assert_allclose(xhat, _np_mlp(params.net["params"]["decoder"], np.asarray(mu)), rtol=1e-10, atol=1e-12)
+    ref, tol = measured_tol(lambda net, m: _np_mlp(net, np.asarray(m)), (params.net["params"]["decoder"], mu), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-8)
+    assert_trees_within(xhat, ref, tol)
 
 
 def test_loss_terms_against_direct_computation():
@@ -305,36 +315,47 @@ def test_loss_terms_against_direct_computation():
     value, aux = F.loss(params, data, key)
 
     eps = np.asarray(jax.random.normal(key, (B, LAT), jnp.float64))  # the documented noise draw
-    scale, bias = np.asarray(params.norm.scale), np.asarray(params.norm.bias)
-    terms = {k: np.zeros(B) for k in ("recon", "latent_kl", "action", "gain", "cov")}
-    for b in range(B):
-        _, _, _, _, mu, lv = _np_reflex(params, x[b], CFG)
-        z = mu + np.exp(0.5 * lv) * eps[b]
-        u, K, _, Psi, _, _ = _np_reflex(params, x[b], CFG, z=z)
-        xn = _np_squash(x[b] * scale + bias, CFG)  # the encoder's input is the reconstruction target
-        xhat = _np_mlp(params.net["params"]["decoder"], z)
-        du, dK = u - tgt[b], K - Kp[b]
-        terms["recon"][b] = w[b] * np.sum((xn - xhat) ** 2)
-        terms["latent_kl"][b] = w[b] * 0.5 * np.sum(mu ** 2 + np.exp(lv) - lv - 1)
-        terms["action"][b] = 0.5 * w[b] * du @ P[b] @ du
-        terms["gain"][b] = 0.5 * w[b] * np.trace(dK.T @ P[b] @ dK @ S[b])
-        # the covariance part of the exact Gaussian KL: KL(N(0, Ψ_Σ) ‖ N(0, P⁻¹))
-        terms["cov"][b] = w[b] * _kl_gauss(np.zeros(dU), Psi, np.zeros(dU), P[b])
-    for name, t in terms.items():
-        np.testing.assert_allclose(aux[name], t.mean(), rtol=1e-9, err_msg=name)
-    expected = (terms["recon"].mean() + CFG.alpha * terms["latent_kl"].mean() + terms["action"].mean()
-                + terms["gain"].mean() + terms["cov"].mean())
-    np.testing.assert_allclose(value, expected, rtol=1e-9)
+
+    def np_terms(params, x, tgt, P, Kp, S):
+        scale, bias = np.asarray(params.norm.scale), np.asarray(params.norm.bias)
+        x, tgt, P, Kp, S = (np.asarray(a) for a in (x, tgt, P, Kp, S))
+        terms = {k: np.zeros(B) for k in ("recon", "latent_kl", "action", "gain", "cov")}
+        for b in range(B):
+            _, _, _, _, mu, lv = _np_reflex(params, x[b], CFG)
+            z = mu + np.exp(0.5 * lv) * eps[b]
+            u, K, _, Psi, _, _ = _np_reflex(params, x[b], CFG, z=z)
+            xn = _np_squash(x[b] * scale + bias, CFG)  # the encoder's input is the reconstruction target
+            xhat = _np_mlp(params.net["params"]["decoder"], z)
+            du, dK = u - tgt[b], K - Kp[b]
+            terms["recon"][b] = w[b] * np.sum((xn - xhat) ** 2)
+            terms["latent_kl"][b] = w[b] * 0.5 * np.sum(mu ** 2 + np.exp(lv) - lv - 1)
+            terms["action"][b] = 0.5 * w[b] * du @ P[b] @ du
+            terms["gain"][b] = 0.5 * w[b] * np.trace(dK.T @ P[b] @ dK @ S[b])
+            # the covariance part of the exact Gaussian KL: KL(N(0, Ψ_Σ) ‖ N(0, P⁻¹))
+            terms["cov"][b] = w[b] * _kl_gauss(np.zeros(dU), Psi, np.zeros(dU), P[b])
+        means = {k: t.mean() for k, t in terms.items()}
+        means["value"] = (means["recon"] + CFG.alpha * means["latent_kl"] + means["action"] + means["gain"]
+                          + means["cov"])
+        return means
+
+    # Tolerance from the computation (tests/tolerances.py): the numpy terms rerun on inputs
+    # perturbed by ε relative, SAFETY times the spread of each.
+    want, tol = measured_tol(np_terms, (params, x, tgt, P, Kp, S), SAFETY)
+    assert_tolerances_small(want, tol, 1e-8)
+    got = {k: (value if k == "value" else aux[k]) for k in want}
+    assert_trees_within(got, want, tol)
     assert aux["cov"] >= 0 and aux["latent_kl"] >= 0
     # the S-step's precomputed log|P| (SStepData.tgt_logdet) gives the same loss
     from gmr_jax.policies.base import target_logdet
     pre = data._replace(tgt_logdet=target_logdet(jnp.asarray(P), jnp.asarray(w)))
     v_pre, aux_pre = F.loss(params, pre, key)
-    np.testing.assert_allclose(v_pre, value, rtol=1e-12)
-    np.testing.assert_allclose(aux_pre["cov"], aux["cov"], rtol=1e-12)
-    # α scales only the latent term
+    # (another program: tolerance measured on the loss as above)
+    loss_ref, loss_tol = measured_tol(lambda p, d: (lambda v, a: (v, a["cov"], a["latent_kl"]))(*F.loss(p, d, key)),
+                                      (params, data), SAFETY)
+    assert_trees_within((v_pre, aux_pre["cov"]), loss_ref[:2], loss_tol[:2])
+    # α scales only the latent term (value and v2 each within their measured tolerance)
     v2, _ = _fns(dataclasses.replace(CFG, alpha=0.25)).loss(params, data, key)
-    np.testing.assert_allclose(value - v2, 0.75 * aux["latent_kl"], rtol=1e-9)
+    assert abs(float(value - v2) - 0.75 * float(aux["latent_kl"])) <= 2 * loss_tol[0] + loss_tol[2]
 
 
 def test_controller_term_is_expected_gaussian_kl():
@@ -357,7 +378,15 @@ def test_controller_term_is_expected_gaussian_kl():
     # vectorised for all draws: the mean part is quadratic in x, the rest constant
     dmean = xs @ (PsiK - Kp).T + (Psik - kp)
     kl_all = 0.5 * np.einsum("ni,ij,nj->n", dmean, P, dmean) + _kl_gauss(np.zeros(dU), PsiS, np.zeros(dU), P)
-    np.testing.assert_allclose(kl_all[:2000], kls, rtol=1e-10)
+
+    def vectorised(xs, PsiK, Psik, PsiS, Kp, kp, P):
+        dm = xs @ (PsiK - Kp).T + (Psik - kp)
+        return 0.5 * np.einsum("ni,ij,nj->n", dm, P, dm) + _kl_gauss(np.zeros(dU), PsiS, np.zeros(dU), P)
+
+    # Two numpy programs: tolerance from the computation (tests/tolerances.py), the vectorised
+    # form rerun on inputs perturbed by ε relative, SAFETY times the spread (both sides: ×2).
+    _, kl_tol = measured_tol(vectorised, (xs[:2000], PsiK, Psik, PsiS, Kp, kp, P), SAFETY)
+    assert_trees_within(kl_all[:2000], kls, 2 * kl_tol[0])
 
     def controller(m, S):
         data = make_sstep_data(m[None], (Kp @ m + kp)[None], P[None], K=Kp[None], k=kp[None], state_cov=S[None])
@@ -366,7 +395,12 @@ def test_controller_term_is_expected_gaussian_kl():
 
     m_hat = xs.mean(axis=0)
     S_hat = (xs - m_hat).T @ (xs - m_hat) / n
-    np.testing.assert_allclose(controller(m_hat, S_hat), kl_all.mean(), rtol=1e-10)
+    # The identity is exact in (m̂, Ŝ); the two sides round differently: the loss's tolerance
+    # measured on (m̂, Ŝ) and the mean's on the draws (tests/tolerances.py), SAFETY times each spread.
+    got, tol_c = measured_tol(controller, (m_hat, S_hat), SAFETY)
+    want, tol_m = measured_tol(lambda xs_: vectorised(xs_, PsiK, Psik, PsiS, Kp, kp, P).mean(), (xs,), SAFETY)
+    assert abs(got - want) <= tol_c[0] + tol_m[0]
+    assert tol_c[0] + tol_m[0] < 1e-8 * abs(want)
     stderr = kl_all.std() / math.sqrt(n)
     assert abs(controller(mu, Sig) - kl_all.mean()) < 4 * stderr
     # without the gain term (Σ = 0) the expectation is underestimated
@@ -404,8 +438,9 @@ def test_sstep_fits_linear_gaussian_teacher():
     cov0 = float(F.loss(params0, data, jax.random.key(99))[1]["cov"])
     cov1 = float(F.loss(params, data, jax.random.key(99))[1]["cov"])
     assert cov1 < 0.2 * cov0, (cov0, cov1)
-    # finalize: closed-form variance 1/diag(P) (constant weights)
-    np.testing.assert_allclose(params.var, 1.0 / np.diag(P), rtol=1e-10)
+    # finalize: closed-form variance 1/diag(P) (constant weights): the mean of B equal positive
+    # diagonals and a reciprocal, c·(B + 1)·ε relative (tests/tolerances.py)
+    assert_close(params.var, 1.0 / np.diag(P), linear_tol(1.0, B + 1))
 
 
 def test_fixed_exploration_uses_closed_form_variance():
@@ -415,7 +450,8 @@ def test_fixed_exploration_uses_closed_form_variance():
     B = 9
     prc = _spd(rng, dU, B)
     fin = fixed.finalize(params, make_sstep_data(rng.normal(size=(B, dX)), rng.normal(size=(B, dU)), prc))
-    np.testing.assert_allclose(fin.var, 1.0 / np.diag(prc.mean(axis=0)), rtol=1e-12)
+    # a mean of B positive diagonals and a reciprocal in each program: c·(B + 1)·ε relative
+    assert_close(fin.var, 1.0 / np.diag(prc.mean(axis=0)), 2 * linear_tol(1.0, B + 1))
     x = jnp.asarray(rng.normal(size=(4, dX)))
     np.testing.assert_allclose(fixed.cov(fin, x), np.broadcast_to(np.diag(fin.var), (4, dU, dU)))
     np.testing.assert_allclose(fixed.cov(fin, x[0]), np.diag(fin.var))
@@ -431,10 +467,12 @@ def test_linearize_constant_reflex_is_exact(cfg):
     x = jnp.asarray(np.random.default_rng(16).normal(size=(6, dX)) * 3.0)
     K, k = F.linearize(params, x)
     refl = F.reflex(params, x)
-    np.testing.assert_allclose(K, refl.K, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(k, refl.k, rtol=1e-10, atol=1e-10)
-    # Ψ_K, Ψ_k are constants: identical at every x
-    np.testing.assert_allclose(refl.K, np.broadcast_to(refl.K[0], refl.K.shape), rtol=1e-12, atol=1e-13)
+    # The Jacobian of a constant reflex is Ψ_K through a few products with the normalisation
+    # (c·4·ε relative); k = u − K x then cancels: affine_tol (tests/tolerances.py).
+    assert_close(K, refl.K, linear_tol(1.0, 4))
+    assert_trees_within(k, refl.k, 2 * affine_tol(refl.K, x, refl.k))
+    # Ψ_K, Ψ_k are constants: identical at every x (up to the rounding of the rows' few products)
+    assert_close(refl.K, np.broadcast_to(refl.K[0], refl.K.shape), linear_tol(1.0, 4))
 
 
 def test_linearize_general_against_finite_differences():
@@ -446,7 +484,7 @@ def test_linearize_general_against_finite_differences():
     fd = np.stack([(F.mean(params, x + h * e) - F.mean(params, x - h * e)) / (2 * h)
                    for e in np.eye(dX)], axis=1)
     np.testing.assert_allclose(K, fd, rtol=1e-6, atol=1e-7)
-    np.testing.assert_allclose(K @ x + k, F.mean(params, x), rtol=1e-12, atol=1e-12)
+    assert_trees_within(K @ x + k, F.mean(params, x), 2 * affine_tol(K, x, k))  # k = u − K x, then K x + k
     # the state-dependence of the Ψ's contributes: K differs from the generated Ψ_K
     assert np.abs(np.asarray(K - F.reflex(params, x).K)).max() > 1e-3
 
@@ -463,13 +501,17 @@ def test_jit_equals_no_jit_and_vmap_over_keys():
                            state_cov=_spd(rng, dX, B))
     x = data.x[:2]
     key = jax.random.key(19)
-    # eager (no jit) against the jitted functions; gmr_linearize is the public convenience form
-    pairs = ((pol.mean(params, x), F.mean(params, x)), (pol.covariance(params, x), F.cov(params, x)),
-             (pol.loss(params, data, key), F.loss(params, data, key)),
-             (gmr_linearize(params, x[1], CFG), tuple(a[1] for a in F.linearize(params, x))))
-    for a, b in pairs:
-        for la, lb in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
-            np.testing.assert_allclose(la, lb, rtol=1e-10, atol=1e-12)
+    # eager (no jit) against the jitted functions; gmr_linearize is the public convenience form.
+    # Tolerances from the computation (tests/tolerances.py): each jitted function rerun on
+    # inputs perturbed by ε relative, SAFETY times the spread of each output.
+    checks = ((pol.mean, F.mean, (params, x)), (pol.covariance, F.cov, (params, x)),
+              (lambda p, d: pol.loss(p, d, key), lambda p, d: F.loss(p, d, key), (params, data)),
+              (lambda p, xs: gmr_linearize(p, xs[1], CFG), lambda p, xs: tuple(a[1] for a in F.linearize(p, xs)),
+               (params, x)))
+    for eager_fn, jit_fn, args in checks:
+        ref, tol = measured_tol(jit_fn, args, SAFETY)
+        assert_tolerances_small(ref, tol, 1e-8)
+        assert_trees_within(eager_fn(*args), ref, tol)
     # vmap over keys: initialisation and the (stochastic) loss equal the per-key results
     keys = jax.random.split(jax.random.key(20), 3)
     inits = jax.jit(jax.vmap(lambda k: pol.init(k, dX, dU)))(keys)
@@ -478,8 +520,11 @@ def test_jit_equals_no_jit_and_vmap_over_keys():
         for la, lb in zip(jax.tree_util.tree_leaves(inits), jax.tree_util.tree_leaves(single), strict=True):
             np.testing.assert_array_equal(la[i], lb)
     losses = jax.jit(jax.vmap(lambda k: pol.loss(params, data, k)[0]))(keys)
-    np.testing.assert_allclose(losses, [F.loss(params, data, k)[0] for k in keys], rtol=1e-12)
+    for i, k in enumerate(keys):
+        ref, tol = measured_tol(lambda p, d: F.loss(p, d, k)[0], (params, data), SAFETY)
+        assert_trees_within(losses[i], ref, tol)
     assert len(set(np.round(np.asarray(losses), 10))) == 3  # the key drives the latent sample
     # vmap over a leading seed axis of the params
     means = jax.jit(jax.vmap(pol.mean, in_axes=(0, None)))(inits, x)
-    np.testing.assert_allclose(means[1], F.mean(F.init(keys[1], dX, dU, None), x), rtol=1e-12)
+    ref, tol = measured_tol(F.mean, (F.init(keys[1], dX, dU, None), x), SAFETY)
+    assert_trees_within(means[1], ref, tol)

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import scipy.linalg as sl
 
+from tolerances import assert_close, linear_tol
+
 from gmr_jax import config, linalg, mdgps
 
 
@@ -18,10 +20,19 @@ def test_cholesky_matches_lapack():
     rng = np.random.default_rng(0)
     a = _spd(rng, (4, 3), 18)
     low = np.asarray(jax.jit(linalg.cholesky)(a))
-    np.testing.assert_allclose(low, np.linalg.cholesky(a), rtol=1e-12, atol=1e-13)
-    # Only the symmetric part counts (as jnp.linalg.cholesky).
+    ref = np.linalg.cholesky(a)
+    # Both factorisations are backward stable: each factor is within c·n·ε·κ(A) of the exact
+    # one, normwise (tests/tolerances.py), so they are within twice that of each other.
+    kappa = np.linalg.cond(a)  # [4, 3]
+    for idx in np.ndindex(a.shape[:2]):
+        assert_close(low[idx], ref[idx], 2 * linear_tol(kappa[idx], 18), f"matrix {idx}")
+    # Only the symmetric part counts (as jnp.linalg.cholesky). Forming it from a + S − Sᵀ rounds
+    # at the size of S: the input moves by ε·(‖A‖ + 2‖S‖), amplified by κ(A) as above.
     skew = rng.normal(size=a.shape)
-    np.testing.assert_allclose(linalg.cholesky(a + skew - np.swapaxes(skew, -1, -2)), low, atol=1e-12)
+    got = np.asarray(linalg.cholesky(a + skew - np.swapaxes(skew, -1, -2)))
+    for idx in np.ndindex(a.shape[:2]):
+        growth = 1.0 + 2.0 * np.linalg.norm(skew[idx], 2) / np.linalg.norm(a[idx], 2)
+        assert_close(got[idx], low[idx], 2 * linear_tol(kappa[idx] * growth, 18), f"matrix {idx}")
 
 
 def test_cholesky_of_a_non_pd_matrix_is_all_nan():
@@ -43,7 +54,9 @@ def test_solve_triangular_matches_lapack(lower, trans):
     x = np.asarray(linalg.solve_triangular(a, b, lower=lower, trans=trans))
     for i in range(5):
         ref = sl.solve_triangular(a[i], b[i], lower=lower, trans=1 if trans else 0)
-        np.testing.assert_allclose(x[i], ref, rtol=1e-12, atol=1e-12)
+        # Triangular substitution is backward stable: forward error ≤ c·n·ε·κ(T) normwise, for
+        # each of the two programs (tests/tolerances.py).
+        assert_close(x[i], ref, 2 * linear_tol(np.linalg.cond(a[i]), 12), f"matrix {i}")
 
 
 def test_cho_solve_and_vmap():
@@ -51,7 +64,12 @@ def test_cho_solve_and_vmap():
     a = _spd(rng, (3, 4), 8)
     b = rng.normal(size=(3, 4, 8, 2))
     x = jax.vmap(jax.vmap(lambda a_, b_: linalg.cho_solve(linalg.cholesky(a_), b_)))(a, b)
-    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10, atol=1e-11)
+    ref = np.linalg.solve(a, b)
+    # Cholesky solve and LU solve are both backward stable: each within c·n·ε·κ(A) of the exact
+    # solution, normwise (tests/tolerances.py).
+    kappa = np.linalg.cond(a)
+    for idx in np.ndindex(a.shape[:2]):
+        assert_close(x[idx], ref[idx], 2 * linear_tol(kappa[idx], 8), f"system {idx}")
     with pytest.raises(ValueError, match="must be"):
         linalg.solve_triangular(a, b[..., 0], lower=True)
 
@@ -61,7 +79,9 @@ def test_cholesky_is_differentiable():
     a = _spd(rng, (), 5)
     f = lambda m: jnp.sum(jnp.log(jnp.diagonal(linalg.cholesky(m))))  # ½ log|m|  # noqa: E731
     g = np.asarray(jax.grad(f)(a))
-    np.testing.assert_allclose(0.5 * (g + g.T), 0.5 * np.linalg.inv(a), rtol=1e-9, atol=1e-10)
+    # The gradient ½A⁻¹ goes through the factor and two triangular solves (backward stable,
+    # each c·n·ε·κ(A) normwise, tests/tolerances.py); numpy's inverse likewise.
+    assert_close(0.5 * (g + g.T), 0.5 * np.linalg.inv(a), 3 * linear_tol(np.linalg.cond(a), 5))
 
 
 def test_mdgps_iteration_lowers_to_no_lapack_call_on_cpu():

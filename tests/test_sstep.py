@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
+
 from gmr_jax.config import MLPConfig, SStepConfig
 from gmr_jax.policies import make_policy, make_sstep_data
 from gmr_jax.sstep import normalize_weights, set_normalization, sstep
@@ -53,11 +55,15 @@ def _teacher(seed=0, n=B, wt=None):
 
 
 def test_normalize_weights_hand_cases():
-    np.testing.assert_allclose(normalize_weights(jnp.array([1.0, 1, 1, 4, 0])), [1, 1, 1, 2, 0], rtol=1e-12)
+    # w·n/Σw, a median, a clip and a division: a sum of n terms and three roundings per entry,
+    # c·(n + 3)·ε relative (tests/tolerances.py)
+    np.testing.assert_allclose(normalize_weights(jnp.array([1.0, 1, 1, 4, 0])), [1, 1, 1, 2, 0],
+                               rtol=linear_tol(1.0, 5 + 3))
     # even count: numpy's median averages the middle pair (2/3 and 1) → 5/6; clip at 5/3
-    np.testing.assert_allclose(normalize_weights(jnp.array([1.0, 2, 3, 6])), [0.4, 0.8, 1.2, 2.0], rtol=1e-12)
+    np.testing.assert_allclose(normalize_weights(jnp.array([1.0, 2, 3, 6])), [0.4, 0.8, 1.2, 2.0],
+                               rtol=linear_tol(1.0, 4 + 3))
     # the toolbox's constant weight 0.01 becomes 1
-    np.testing.assert_allclose(normalize_weights(jnp.full(7, 0.01)), np.ones(7), rtol=1e-12)
+    np.testing.assert_allclose(normalize_weights(jnp.full(7, 0.01)), np.ones(7), rtol=linear_tol(1.0, 7 + 3))
 
 
 def test_normalize_weights_matches_numpy():
@@ -65,7 +71,9 @@ def test_normalize_weights_matches_numpy():
     for n in (9, 10):
         w = rng.exponential(size=n)
         w[:2] = [0.0, 1e-4]  # below the median floor after rescaling
-        np.testing.assert_allclose(jax.jit(normalize_weights)(jnp.asarray(w)), _np_weights(w), rtol=1e-12)
+        # two programs, each c·(n + 3)·ε relative per entry (tests/tolerances.py)
+        np.testing.assert_allclose(jax.jit(normalize_weights)(jnp.asarray(w)), _np_weights(w),
+                                   rtol=2 * linear_tol(1.0, n + 3))
 
 
 def test_set_normalization_fixed_after_first_call(policy):
@@ -75,8 +83,11 @@ def test_set_normalization_fixed_after_first_call(policy):
     x[:, 0] = 3.0  # a constant input: std 0 → floor 1e-3
     p1 = set_normalization(params, jnp.asarray(x))
     std = np.maximum(x.std(axis=0), 1e-3)
-    np.testing.assert_allclose(p1.norm.scale, 1.0 / std, rtol=1e-12)
-    np.testing.assert_allclose(p1.norm.bias, -x.mean(axis=0) / std, rtol=1e-12, atol=1e-12)
+    # A mean and a std of n = B values (sums of n terms, c·2n·ε relative each, two programs;
+    # tests/tolerances.py); the bias −mean·scale carries both.
+    rel = 2 * linear_tol(1.0, 2 * B)
+    np.testing.assert_allclose(p1.norm.scale, 1.0 / std, rtol=rel)
+    assert_close(p1.norm.bias, -x.mean(axis=0) / std, 2 * rel)
     assert bool(p1.norm.set)
     p2 = set_normalization(p1, jnp.asarray(5.0 * x + 1.0))  # new data: statistics stay
     np.testing.assert_array_equal(p2.norm.scale, p1.norm.scale)
@@ -85,7 +96,7 @@ def test_set_normalization_fixed_after_first_call(policy):
     w = np.ones(B)
     w[50:] = 0.0
     p3 = set_normalization(params, data.x, jnp.asarray(w))
-    np.testing.assert_allclose(p3.norm.scale, 1.0 / np.asarray(data.x)[:50].std(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(p3.norm.scale, 1.0 / np.asarray(data.x)[:50].std(axis=0), rtol=rel)
 
 
 def test_objective_equals_numpy_and_nan_flag(policy):
@@ -98,22 +109,30 @@ def test_objective_equals_numpy_and_nan_flag(policy):
     cfg = SStepConfig(epochs=1, batch_size=20, lr=1e-30, weight_decay=2e-4)
     new, metrics = _sstep(policy, params, data, jax.random.key(3), cfg)
 
-    x = np.asarray(data.x)
-    valid = x[wt > 0]  # the zero-weight row is left out of the input statistics
-    scale = 1.0 / valid.std(axis=0)
-    bias = -valid.mean(axis=0) * scale
-    d = _np_forward(params.net, scale, bias, x) - np.asarray(data.tgt_mu)
     w = _np_weights(wt)
-    P = np.asarray(data.tgt_prc)
-    data_term = 0.5 * np.mean([w[b] * d[b] @ P[b] @ d[b] for b in range(B)])
-    theta = np.concatenate([np.ravel(v) for v in jax.tree_util.tree_leaves(params.net)])
+
+    def np_objective(net, x, tgt_mu, P):
+        x = np.asarray(x)
+        valid = x[wt > 0]  # the zero-weight row is left out of the input statistics
+        scale = 1.0 / valid.std(axis=0)
+        bias = -valid.mean(axis=0) * scale
+        d = _np_forward(net, scale, bias, x) - np.asarray(tgt_mu)
+        data_term = 0.5 * np.mean([w[b] * d[b] @ np.asarray(P[b]) @ d[b] for b in range(B)])
+        theta = np.concatenate([np.ravel(v) for v in jax.tree_util.tree_leaves(net)])
+        return data_term, data_term + 2e-4 * np.sum(np.asarray(theta) ** 2)
+
     assert metrics["loss"].shape == (1,)
-    np.testing.assert_allclose(metrics["data_loss"][0], data_term, rtol=1e-10)
-    np.testing.assert_allclose(metrics["loss"][0], data_term + 2e-4 * np.sum(theta ** 2), rtol=1e-10)
+    # Tolerance from the computation (tests/tolerances.py): the numpy objective rerun on inputs
+    # perturbed by ε relative, SAFETY times the spread.
+    ref, tol = measured_tol(np_objective, (params.net, data.x, data.tgt_mu, data.tgt_prc), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-10)
+    assert_trees_within((metrics["data_loss"][0], metrics["loss"][0]), ref, tol)
+    P = np.asarray(data.tgt_prc)
     assert bool(metrics["finite"]) and bool(metrics["weights_ok"])
     # variance rule: 1/diag of the weighted mean precision (= mean precision for constant weights)
     A = np.einsum("b,bij->ij", w, P) / w.sum()
-    np.testing.assert_allclose(new.var, 1.0 / np.diag(A), rtol=1e-12)
+    # weighted means of B positive diagonals and a reciprocal, two programs: c·2(B + 2)·ε relative
+    assert_close(new.var, 1.0 / np.diag(A), 2 * linear_tol(1.0, 2 * (B + 2)))
 
     bad = data._replace(tgt_mu=data.tgt_mu.at[5, 0].set(jnp.nan))
     _, bad_metrics = _sstep(policy, params, bad, jax.random.key(3), cfg)
@@ -134,7 +153,7 @@ def test_fits_linear_gaussian_teacher(policy):
     xt = np.random.default_rng(9).normal(size=(200, dX)) * X_SCALE + X_SHIFT
     ut = np.asarray(policy.mean(new, jnp.asarray(xt)))
     assert np.sqrt(np.mean((ut - (xt @ K.T + k)) ** 2)) / np.std(np.asarray(data.tgt_mu)) < 0.08
-    np.testing.assert_allclose(new.var, 1.0 / np.diag(np.asarray(data.tgt_prc).mean(0)), rtol=1e-12)
+    assert_close(new.var, 1.0 / np.diag(np.asarray(data.tgt_prc).mean(0)), 2 * linear_tol(1.0, 2 * (B + 2)))
     # warm start: a second S-step on shifted data keeps the first statistics
     shifted = data._replace(x=data.x + 100.0)
     again, _ = _sstep(policy, new, shifted, jax.random.key(2), cfg)
@@ -148,18 +167,23 @@ def test_jit_equals_nojit_and_vmap_equals_loop(policy):
     keys = jax.random.split(jax.random.key(7), 3)
     inits = [policy.init(k, dX, dU) for k in keys]
 
-    eager, eager_m = sstep(policy, inits[0], data, keys[0], cfg)
-    jitted, jitted_m = _sstep(policy, inits[0], data, keys[0], cfg)
-    for a, b in zip(jax.tree_util.tree_leaves((eager, eager_m)), jax.tree_util.tree_leaves((jitted, jitted_m))):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    # Tolerances from the computation (tests/tolerances.py): the jitted S-step rerun from
+    # parameters and data perturbed by ε relative shows how far the rounding differences of
+    # another program (eager, vmapped) travel through the Adam steps; SAFETY times that spread.
+    def single(i):
+        return measured_tol(lambda p, d: _sstep(policy, p, d, keys[i], cfg), (inits[i], data), SAFETY)
+
+    eager = sstep(policy, inits[0], data, keys[0], cfg)
+    jitted, tol = single(0)
+    assert_tolerances_small(jitted, tol, 1e-6)
+    assert_trees_within(eager, jitted, tol)
 
     batched_params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *inits)
     run = jax.jit(jax.vmap(functools.partial(sstep, policy, data=data, cfg=cfg)))
     vp, vm = run(batched_params, key=keys)
     for i in range(3):
-        single = _sstep(policy, inits[i], data, keys[i], cfg)
-        for a, b in zip(jax.tree_util.tree_leaves((vp, vm)), jax.tree_util.tree_leaves(single)):
-            np.testing.assert_allclose(a[i], b, rtol=1e-9, atol=1e-12)
+        ref, tol = single(i)
+        assert_trees_within(jax.tree_util.tree_map(lambda a: a[i], (vp, vm)), ref, tol)
     # different seeds give different networks
     w0 = vp.net["params"]["Dense_0"]["kernel"]
     assert not np.allclose(w0[0], w0[1])
@@ -170,11 +194,14 @@ def test_unrolled_loop_takes_the_same_steps(policy):
     the same order (B = 100 rows: 5 minibatches per epoch, so unroll 3 also leaves a remainder)."""
     data, _ = _teacher(5)
     params = policy.init(jax.random.key(1), dX, dU)
-    ref, ref_m = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=1))
+    # Unrolling lets XLA fuse (and so round) across steps differently: tolerance from the
+    # computation, as in test_jit_equals_nojit_and_vmap_equals_loop.
+    cfg1 = SStepConfig(epochs=4, unroll=1)
+    ref, tol = measured_tol(lambda p, d: _sstep(policy, p, d, jax.random.key(2), cfg1), (params, data), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-6)
     for unroll in (3, 5):
-        got, got_m = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=unroll))
-        for a, b in zip(jax.tree_util.tree_leaves((ref, ref_m)), jax.tree_util.tree_leaves((got, got_m))):
-            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+        got = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=unroll))
+        assert_trees_within(got, ref, tol)
     with pytest.raises(ValueError, match="sstep.unroll"):
         SStepConfig(unroll=0)
 
