@@ -25,12 +25,12 @@ import jax
 import jax.numpy as jnp
 
 from gmr_jax import linalg
-from gmr_jax.config import REGULARIZERS, DynamicsConfig
-from gmr_jax.gmm import gmm_empty, gmm_update, niw_prior, num_clusters
+from gmr_jax.config import DynamicsConfig
+from gmr_jax.gmm import gmm_empty
+from gmr_jax.prior import conditional_fit, refit_gmm, regularizer_matrix, ring_insert, stored_mask
 from gmr_jax.types import GMM, Dynamics
 
 Array = jax.Array
-_HI = jax.lax.Precision.HIGHEST  # full float32 products on GPUs (their default is TF32)
 
 
 class DynamicsPrior(NamedTuple):
@@ -48,30 +48,6 @@ class DynamicsPrior(NamedTuple):
     U: Array
     count: Array
     gmm: GMM
-
-
-def _sym(a: Array) -> Array:
-    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
-
-
-def ring_insert(buf: Array, count: Array, new: Array) -> Array:
-    """Write ``new`` trajectories into the ring buffer ``buf`` after ``count`` earlier ones.
-
-    Args:
-      buf: [S, ...] buffer; count: [] trajectories added before; new: [N, ...].
-    Returns: [S, ...] the buffer holding the last min(count + N, S) trajectories. If N > S only
-      the last S new ones are written (statically sliced, so the scatter indices are distinct).
-    """
-    S, N = buf.shape[0], new.shape[0]
-    skip = max(0, N - S)
-    new = new[skip:]
-    idx = (count + skip + jnp.arange(new.shape[0])) % S
-    return buf.at[idx].set(new.astype(buf.dtype))
-
-
-def stored_mask(count: Array, S: int) -> Array:
-    """[S] bool, which ring-buffer slots hold a trajectory."""
-    return jnp.arange(S) < jnp.minimum(count, S)
 
 
 def dynamics_prior_empty(T: int, dX: int, dU: int, cfg: DynamicsConfig, dtype=jnp.float32) -> DynamicsPrior:
@@ -112,70 +88,10 @@ def update_dynamics_prior(prior: DynamicsPrior, key, X: Array, U: Array, cfg: Dy
     Xb = ring_insert(prior.X, prior.count, X)
     Ub = ring_insert(prior.U, prior.count, U)
     count = prior.count + N
-    valid = stored_mask(count, S)
-    pts = transition_points(Xb, Ub)  # [S, T−1, D], trajectory-major rows as in the toolbox
-    D = pts.shape[-1]
-    mask = jnp.repeat(valid, T - 1)
-    n_stored = jnp.minimum(count, S)
-    K = num_clusters(n_stored * (T - 1), cfg.min_samples_per_cluster, cfg.max_clusters)
-    gmm = gmm_update(prior.gmm, key, pts.reshape(S * (T - 1), D), mask, K, cfg.em_iterations)
+    # the points [x_t, u_t, x_{t+1}] of every stored trajectory, trajectory-major as in the toolbox
+    gmm = refit_gmm(prior.gmm, key, transition_points(Xb, Ub), count, cfg.min_samples_per_cluster,
+                    cfg.max_clusters, cfg.em_iterations)
     return DynamicsPrior(X=Xb, U=Ub, count=count, gmm=gmm)
-
-
-def regularizer_matrix(kind: str, value: float, n: int, D: int, dtype) -> Array:
-    """[D, D] zeros with ``value`` added to the leading [n, n] block of a joint covariance.
-
-    kind "ridge": value·I on the block (FIX, the default). kind "toolbox": value added to every
-    entry of the block, value·11ᵀ, which is what the toolbox's ``sig_reg[:n, :n] = value`` numpy
-    broadcast does. The rank-one form shifts the block only along 11ᵀ, so it cannot make a
-    rank-deficient block (the transitions of a deterministic plant, a deterministic x₀)
-    invertible; it is kept as an option to reproduce the toolbox's numbers.
-    """
-    if kind == "ridge":
-        block = value * jnp.eye(n, dtype=dtype)
-    elif kind == "toolbox":
-        block = jnp.full((n, n), value, dtype)
-    else:
-        raise ValueError(f"regularizer={kind!r}: allowed values are {REGULARIZERS}")
-    return jnp.zeros((D, D), dtype).at[:n, :n].set(block)
-
-
-def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array, d1: int, d2: int,
-                          sig_reg: Array):
-    """MAP Gaussian fit of [a; b] under a NIW prior, then condition b on a (toolbox formula).
-
-    μ̂ = Σ w_n y_n;  Ŝ = Σ w_n (y_n−μ̂)(y_n−μ̂)ᵀ;
-    Σ = [N·Ŝ + Φ + N·m/(N+m)·(μ̂−μ₀)(μ̂−μ₀)ᵀ]/(N + n₀) (symmetrised) + sig_reg;
-    fd = (Σ_aa⁻¹ Σ_ab)ᵀ,  fc = μ̂_b − fd μ̂_a,  dynsig = Σ_bb − fd Σ_aa fdᵀ (symmetrised).
-    The posterior mean is the empirical mean; the prior enters only the covariance.
-
-    Args:
-      pts: [N, d1 + d2] rows y = [a; b].
-      mu0: [d1 + d2], Phi: [d1 + d2, d1 + d2], m: [], n0: [] the prior (m = n0 = 0, Φ = 0: none).
-      dwts: [N] weights summing to one (toolbox: 1/N). N counts the rows with positive weight,
-        so zero-weight padding rows do not change the result.
-      d1, d2: static block sizes.
-      sig_reg: [d1 + d2, d1 + d2] added to the joint covariance.
-    Returns: (fd [d2, d1], fc [d2], dynsig [d2, d2]).
-    """
-    dtype = pts.dtype
-    N = jnp.sum(dwts > 0).astype(dtype)
-    dwts = dwts.astype(dtype)
-    pts = jnp.where((dwts > 0)[:, None], pts, 0.0)
-    mm = lambda a, b: jnp.matmul(a, b, precision=_HI)
-    mun = mm(dwts, pts)
-    diff = pts - mun
-    empsig = _sym(mm((diff * dwts[:, None]).T, diff))
-    dmu = mun - mu0
-    sigma = (N * empsig + Phi + (N * m / (N + m)) * jnp.outer(dmu, dmu)) / (N + n0)
-    sigma = _sym(sigma) + sig_reg
-    s11 = sigma[:d1, :d1]
-    s12 = sigma[:d1, d1:d1 + d2]
-    # Σ_aa is symmetric positive definite (prior or ridge): a Cholesky solve, not a general one.
-    fd = linalg.cho_solve(linalg.cholesky(s11), s12).T
-    fc = mun[d1:d1 + d2] - mm(fd, mun[:d1])
-    dynsig = _sym(sigma[d1:d1 + d2, d1:d1 + d2] - mm(mm(fd, s11), fd.T))
-    return fd, fc, dynsig
 
 
 def prior_initial_state(prior: DynamicsPrior, strength: float):
@@ -215,7 +131,7 @@ def fit_initial_state(prior: DynamicsPrior, X: Array, cfg: DynamicsConfig):
     # FIX: the toolbox divides only the outer-product term by (N + n₀); Φ₀ belongs inside too.
     term = (Phi0 + (N * m / (N + m)) * jnp.outer(d, d)) / (N + n0)
     x0sigma = x0sigma + jnp.where(prior.count > 0, term, 0.0)
-    return x0mu, _sym(x0sigma)
+    return x0mu, linalg.sym(x0sigma)
 
 
 def fit_dynamics(prior: DynamicsPrior, X: Array, U: Array, cfg: DynamicsConfig) -> Dynamics:
@@ -245,15 +161,9 @@ def fit_dynamics(prior: DynamicsPrior, X: Array, U: Array, cfg: DynamicsConfig) 
     # FIX (default "ridge"): ridge on the (x, u) diagonal; the toolbox's sig_reg[:dX+dU, :dX+dU] =
     # reg broadcasts to a rank-one reg·11ᵀ, which does not regularise ("toolbox").
     sig_reg = regularizer_matrix(cfg.regularizer, cfg.regularization, dxu, D, dtype)
-    has_gmm = prior.gmm.initialized
 
     def step(pts):
-        mu0, Phi, m, n0 = niw_prior(prior.gmm, pts, cfg.strength)
-        mu0 = jnp.where(has_gmm, mu0, 0.0)
-        Phi = jnp.where(has_gmm, Phi, 0.0)
-        m = jnp.where(has_gmm, m, 0.0)
-        n0 = jnp.where(has_gmm, n0, 0.0)
-        return gauss_fit_joint_prior(pts, mu0, Phi, m, n0, dwts, dxu, dX, sig_reg)
+        return conditional_fit(prior.gmm, pts, cfg.strength, dwts, dxu, dX, sig_reg)
 
     Fm, fv, dyn_covar = jax.vmap(step)(Y)
     pad = lambda a: jnp.concatenate([a, jnp.zeros((1,) + a.shape[1:], a.dtype)], axis=0)

@@ -85,10 +85,6 @@ def num_clusters(n_points, min_samples_per_cluster: int, max_clusters: int) -> A
     return jnp.maximum(2, jnp.minimum(max_clusters, n // min_samples_per_cluster)).astype(jnp.int32)
 
 
-def _sym(a: Array) -> Array:
-    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
-
-
 def _default_mask(data: Array, mask) -> Array:
     if mask is None:
         return jnp.ones(data.shape[:1], bool)
@@ -187,7 +183,7 @@ def _init_params(key, data: Array, mask: Array, k: Array, K_max: int):
     empty = counts == 0
     mu = jnp.where(empty[:, None], m_all, mu)
     sigma = jnp.where(empty[:, None, None], s_all, sigma)
-    sigma = _sym(sigma) + INIT_JITTER * jnp.eye(D, dtype=dtype)
+    sigma = linalg.sym(sigma) + INIT_JITTER * jnp.eye(D, dtype=dtype)
     logmass = jnp.full((K_max,), -jnp.log(k.astype(dtype)), dtype)
     return _inactive_defaults(active, mu, sigma, logmass)
 
@@ -216,7 +212,7 @@ def _m_step(data: Array, mask: Array, logobs: Array, active: Array, k: Array):
     w = jnp.where(active[None, :], w, 0.0)
     # FIX (numerics only): centred scatter instead of Σ w x xᵀ − μμᵀ, identical in exact arithmetic.
     mu, sigma = _weighted_moments(w, data)
-    sigma = _sym(sigma) + EM_JITTER * jnp.eye(D, dtype=dtype)
+    sigma = linalg.sym(sigma) + EM_JITTER * jnp.eye(D, dtype=dtype)
     return _inactive_defaults(active, mu, sigma, logmass)
 
 
@@ -335,7 +331,7 @@ def gmm_inference(gmm: GMM, pts: Array, mask=None):
     N = gmm.n_points.astype(dtype)
     m = jnp.ones((), dtype)
     n0 = (N - 2.0 - D) / N
-    return mu0, _sym(Phi), m, n0
+    return mu0, linalg.sym(Phi), m, n0
 
 
 def niw_prior(gmm: GMM, pts: Array, strength: float, mask=None):

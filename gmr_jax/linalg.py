@@ -21,6 +21,7 @@ positive definite gives a factor that is NaN (callers test ``isfinite``).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 from jax.scipy import linalg as jsl
@@ -32,10 +33,22 @@ def _mT(a: Array) -> Array:
     return jnp.swapaxes(a, -1, -2)
 
 
+def sym(a: Array) -> Array:
+    """The symmetric part ½(A + Aᵀ) of [..., n, n] (what must be symmetric is made so exactly)."""
+    return 0.5 * (a + _mT(a))
+
+
+def all_finite(tree) -> Array:
+    """[] bool: every inexact leaf of a pytree (or an array) is finite."""
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
+              if jnp.issubdtype(jnp.asarray(x).dtype, jnp.inexact)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
 def _cholesky_columns(a: Array) -> Array:
     """Lower Cholesky factor of a [..., n, n] by the left-looking column algorithm."""
     n = a.shape[-1]
-    a = 0.5 * (a + _mT(a))
+    a = sym(a)
     rows = jnp.arange(n)
 
     def body(j, low):

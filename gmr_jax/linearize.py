@@ -13,7 +13,7 @@ Deviation from the toolbox (``FIX``): the t = 0 regularisation is a ridge
 ``t0_regularization·I`` on the state block; the toolbox broadcasts 1e-8 to every entry of that
 block (rank one), which cannot make a degenerate block (deterministic x₀) invertible
 (``PolicyPriorConfig.t0_regularizer = "toolbox"`` restores the broadcast; see
-``dynamics.regularizer_matrix``).
+``prior.regularizer_matrix``).
 
 Also here: ``linearize_policy_autodiff``, the exact first-order expansion of a differentiable
 policy around given states (the option for GMR policies).
@@ -27,8 +27,9 @@ import jax
 import jax.numpy as jnp
 
 from gmr_jax.config import POLICY_PRIOR_MODES, PolicyPriorConfig
-from gmr_jax.dynamics import gauss_fit_joint_prior, regularizer_matrix, ring_insert, stored_mask
-from gmr_jax.gmm import gmm_empty, gmm_update, niw_prior, num_clusters
+from gmr_jax import linalg
+from gmr_jax.gmm import gmm_empty
+from gmr_jax.prior import conditional_fit, refit_gmm, regularizer_matrix, ring_insert, stored_mask
 from gmr_jax.types import GMM
 
 Array = jax.Array
@@ -47,10 +48,6 @@ class PolicyPrior(NamedTuple):
     X: Array
     count: Array
     gmm: GMM
-
-
-def _sym(a: Array) -> Array:
-    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
 
 
 def policy_prior_empty(T: int, dX: int, dU: int, cfg: PolicyPriorConfig, dtype=jnp.float32) -> PolicyPrior:
@@ -92,14 +89,12 @@ def update_policy_prior(prior: PolicyPrior, key, X: Array, action_fn: Callable[[
     else:
         Xb = ring_insert(prior.X, prior.count, X)
         count = prior.count + N
-    valid = stored_mask(count, S)
-    mask = jnp.repeat(valid, T)
-    xs = Xb.reshape(S * T, dX)
-    U = jax.vmap(action_fn)(xs)
-    pts = jnp.concatenate([xs, U.astype(xs.dtype)], axis=-1)
-    pts = jnp.where(mask[:, None], pts, 0.0)  # the policy may be undefined on empty slots
-    K = num_clusters(jnp.minimum(count, S) * T, cfg.min_samples_per_cluster, cfg.max_clusters)
-    gmm = gmm_update(prior.gmm, key, pts, mask, K, cfg.em_iterations)
+    mask = stored_mask(count, S)[:, None, None]
+    U = jax.vmap(action_fn)(Xb.reshape(S * T, dX)).reshape(S, T, -1)
+    # the policy may be undefined on empty slots: their rows are zeroed (and masked in the fit)
+    pts = jnp.where(mask, jnp.concatenate([Xb, U.astype(Xb.dtype)], axis=-1), 0.0)
+    gmm = refit_gmm(prior.gmm, key, pts, count, cfg.min_samples_per_cluster, cfg.max_clusters,
+                    cfg.em_iterations)
     return PolicyPrior(X=Xb, count=count, gmm=gmm)
 
 
@@ -145,11 +140,10 @@ def linearize_policy(prior: PolicyPrior, X: Array, pol_mu: Array, pol_sig: Array
     sig_reg = jnp.zeros((T, D, D), dtype).at[0].set(reg0)
 
     def step(pts, reg):
-        mu0, Phi, m, n0 = niw_prior(prior.gmm, pts, cfg.strength)
-        return gauss_fit_joint_prior(pts, mu0, Phi, m, n0, dwts, dX, dU, reg)
+        return conditional_fit(prior.gmm, pts, cfg.strength, dwts, dX, dU, reg)
 
     pol_K, pol_k, cond_S = jax.vmap(step)(Y, sig_reg)
-    return pol_K, pol_k, _sym(cond_S + pol_sig)
+    return pol_K, pol_k, linalg.sym(cond_S + pol_sig)
 
 
 def linearize_policy_autodiff(action_fn: Callable[[Array], Array], x: Array, pol_sig: Array):
@@ -166,4 +160,4 @@ def linearize_policy_autodiff(action_fn: Callable[[Array], Array], x: Array, pol
     T = x.shape[0]
     u, K = jax.vmap(lambda xt: (action_fn(xt), jax.jacfwd(action_fn)(xt)))(x)
     k = u - jnp.einsum("tux,tx->tu", K, x, precision=jax.lax.Precision.HIGHEST)
-    return K, k, _sym(_collapse_pol_sig(jnp.asarray(pol_sig, x.dtype), T))
+    return K, k, linalg.sym(_collapse_pol_sig(jnp.asarray(pol_sig, x.dtype), T))

@@ -54,11 +54,6 @@ __all__ = [
 # Small linear-algebra helpers (all batched over leading axes)
 
 
-def _sym(a: Array) -> Array:
-    """½(A + Aᵀ) over the last two axes."""
-    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
-
-
 def _mT(a: Array) -> Array:
     return jnp.swapaxes(a, -1, -2)
 
@@ -73,10 +68,6 @@ def _eye_like(a: Array) -> Array:
     return jnp.broadcast_to(jnp.eye(a.shape[-1], dtype=a.dtype), a.shape)
 
 
-def _all_finite(a: Array) -> Array:
-    return jnp.all(jnp.isfinite(a))
-
-
 def policy_precision(policy: LinearGaussianPolicy) -> Array:
     """Precision S⁻¹ [T, dU, dU] recomputed from the upper Cholesky factor by triangular solves.
 
@@ -85,7 +76,7 @@ def policy_precision(policy: LinearGaussianPolicy) -> Array:
     """
     u = policy.chol_pol_covar
     u_inv = linalg.solve_triangular(u, _eye_like(u), lower=False)
-    return _sym(u_inv @ _mT(u_inv))
+    return linalg.sym(u_inv @ _mT(u_inv))
 
 
 def policy_from_precision(K: Array, k: Array, prec: Array) -> LinearGaussianPolicy:
@@ -97,9 +88,9 @@ def policy_from_precision(K: Array, k: Array, prec: Array) -> LinearGaussianPoli
       LinearGaussianPolicy with pol_covar = prec⁻¹, chol_pol_covar its upper Cholesky factor
       (pol_covar = Uᵀ U) and inv_pol_covar = prec (symmetrised). NaNs mark a non-PD ``prec``.
     """
-    prec = _sym(prec)
+    prec = linalg.sym(prec)
     low = linalg.cholesky(prec)
-    covar = _sym(linalg.cho_solve(low, _eye_like(prec)))
+    covar = linalg.sym(linalg.cho_solve(low, _eye_like(prec)))
     return LinearGaussianPolicy(K=K, k=k, pol_covar=covar, chol_pol_covar=_chol_upper(covar),
                                 inv_pol_covar=prec)
 
@@ -113,11 +104,11 @@ def policy_from_covariance(K: Array, k: Array, covar: Array) -> LinearGaussianPo
       LinearGaussianPolicy with chol_pol_covar = upper Cholesky of ``covar`` and
       inv_pol_covar recomputed from it by triangular solves (toolbox ``PolicyInfo.traj_distr``).
     """
-    covar = _sym(covar)
+    covar = linalg.sym(covar)
     u = _chol_upper(covar)
     u_inv = linalg.solve_triangular(u, _eye_like(u), lower=False)
     return LinearGaussianPolicy(K=K, k=k, pol_covar=covar, chol_pol_covar=u,
-                                inv_pol_covar=_sym(u_inv @ _mT(u_inv)))
+                                inv_pol_covar=linalg.sym(u_inv @ _mT(u_inv)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -146,21 +137,21 @@ def _riccati(Fm: Array, fv: Array, Cm: Array, cv: Array) -> tuple[LinearGaussian
         # jnp.where (not V = 0 alone) keeps a NaN/garbage Fm at T−1 out of Q_{T−1}.
         Q = C + jnp.where(last, 0.0, F.T @ V @ F)
         q = c + jnp.where(last, 0.0, F.T @ (v + V @ f))
-        Q = _sym(Q)
+        Q = linalg.sym(Q)
         Quu, Qux, Qxu = Q[dX:, dX:], Q[dX:, :dX], Q[:dX, dX:]
         low = linalg.cholesky(Quu)  # NaN when Q_uu is not PD
         # Q_uu⁻¹ [I, Q_ux, q_u] by one pair of triangular solves (smaller program than three).
         sol = linalg.cho_solve(low, jnp.concatenate([eye_u, Qux, q[dX:, None]], axis=1))
-        covar = _sym(sol[:, :dU])
+        covar = linalg.sym(sol[:, :dU])
         chol_cov = _chol_upper(covar)
         K = -sol[:, dU:dU + dX]
         k = -sol[:, dU + dX]
-        V_new = _sym(Q[:dX, :dX] + Qxu @ K)
+        V_new = linalg.sym(Q[:dX, :dX] + Qxu @ K)
         v_new = q[:dX] + Qxu @ k
         # A failure of the covariance's Cholesky (possible in float32 for an ill-conditioned
         # but PD Q_uu) is treated like a non-PD Q_uu, so that η is raised instead of NaNs
         # leaking into the controller.
-        fail = ~(_all_finite(low) & _all_finite(chol_cov))
+        fail = ~(linalg.all_finite(low) & linalg.all_finite(chol_cov))
         return (V_new, v_new), (K, k, covar, chol_cov, Quu, fail)
 
     init = (jnp.zeros((dX, dX), Cm.dtype), jnp.zeros((dX,), Cm.dtype))
@@ -197,10 +188,10 @@ def kl_augmented_cost(cost: QuadraticCost, anchor: LinearGaussianPolicy, eta) ->
     Pk = jnp.einsum("tij,tj->ti", P, kb)
     top = jnp.concatenate([_mT(Kb) @ PK, -_mT(PK)], axis=-1)
     bot = jnp.concatenate([-PK, P], axis=-1)
-    M = _sym(jnp.concatenate([top, bot], axis=-2))
+    M = linalg.sym(jnp.concatenate([top, bot], axis=-2))
     v = jnp.concatenate([jnp.einsum("tji,tj->ti", Kb, Pk), -Pk], axis=-1)
     c = 0.5 * jnp.einsum("ti,ti->t", kb, Pk)
-    return QuadraticCost(Cm=_sym(cost.Cm) / eta + M, cv=cost.cv / eta + v, cc=cost.cc / eta + c)
+    return QuadraticCost(Cm=linalg.sym(cost.Cm) / eta + M, cv=cost.cv / eta + v, cc=cost.cc / eta + c)
 
 
 def lqr_backward(dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolicy, eta,
@@ -276,15 +267,15 @@ def lqr_forward(dyn: Dynamics, policy: LinearGaussianPolicy) -> Marginals:
             jnp.concatenate([Sx, SxKt], axis=1),
             jnp.concatenate([SxKt.T, K @ SxKt + Su], axis=1),
         ], axis=0)
-        sigma = _sym(sigma)
+        sigma = linalg.sym(sigma)
         # The transition out of T−1 is computed but never emitted (Fm[T−1] is unused).
         mx_next = F @ mu + f
-        Sx_next = _sym(F @ sigma @ F.T + W)
+        Sx_next = linalg.sym(F @ sigma @ F.T + W)
         return (mx_next, Sx_next), (mu, sigma)
 
-    init = (dyn.x0mu, _sym(dyn.x0sigma))
+    init = (dyn.x0mu, linalg.sym(dyn.x0sigma))
     _, (mu, sigma) = lax.scan(step, init, (policy.K, policy.k, policy.pol_covar, dyn.Fm, dyn.fv,
-                                           _sym(dyn.dyn_covar)))
+                                           linalg.sym(dyn.dyn_covar)))
     return Marginals(mu=mu, sigma=sigma)
 
 
@@ -344,7 +335,7 @@ def estimate_cost(policy: LinearGaussianPolicy, dyn: Dynamics, cost: QuadraticCo
       [T] expected cost per step.
     """
     m = lqr_forward(dyn, policy)
-    Cm = _sym(cost.Cm)
+    Cm = linalg.sym(cost.Cm)
     return (cost.cc + 0.5 * jnp.sum(m.sigma * Cm, axis=(-2, -1))
             + 0.5 * jnp.einsum("ti,tij,tj->t", m.mu, Cm, m.mu)
             + jnp.einsum("ti,ti->t", m.mu, cost.cv))
