@@ -200,9 +200,9 @@ class FusedRows(NamedTuple):
       wt: [] the normalised weight w.
       logdet: [] log|P| of the unweighted precision.
 
-    Symmetrising, ½(A + Aᵀ), changes no quadratic form and nothing at all for a symmetric A (the
-    local controllers' precisions and covariances are); the gradients of ``fused_head`` assume
-    it.
+    The gradients of ``fused_head`` assume symmetric matrices. Symmetrising, ½(A + Aᵀ), changes
+    nothing for a symmetric A (precisions and covariances are symmetric), and the loss's terms
+    see only the symmetric part of P when Σ_t is symmetric, and the other way round.
     """
 
     xn: Array
