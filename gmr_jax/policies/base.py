@@ -228,6 +228,31 @@ def weighted_action_error(u: Array, tgt_mu: Array, tgt_prc: Array) -> Array:
     return 0.5 * jnp.mean(jnp.einsum("bi,bij,bj->b", d, tgt_prc, d))
 
 
+def symmetrize(A: Array) -> Array:
+    """½(A + Aᵀ) over the last two axes (A itself, bit for bit, if A is symmetric)."""
+    return 0.5 * (A + jnp.swapaxes(A, -1, -2))
+
+
+def _quadratic_rows_fwd(d, P):
+    Pd = jnp.einsum("bij,bj->bi", P, d)
+    return jnp.sum(d * Pd, axis=-1), Pd
+
+
+def _quadratic_rows_bwd(Pd, ct):
+    return (2.0 * ct)[..., None] * Pd, None
+
+
+@jax.custom_vjp
+def quadratic_rows(d: Array, P: Array) -> Array:
+    """dᵀ P d per row: d [b, n], P [b, n, n] symmetric -> [b], with its gradient 2·P d in closed
+    form (one product for value and gradient; autodiff of the einsum forms three). P is treated
+    as a constant."""
+    return _quadratic_rows_fwd(d, P)[0]
+
+
+quadratic_rows.defvjp(_quadratic_rows_fwd, _quadratic_rows_bwd)
+
+
 def noisy_action(policy: Policy, params: PolicyParams, x: Array, noise: Array) -> Array:
     """u = mean(x) + L·ε with L Lᵀ = covariance(x): x [dX], noise ε [dU] (standard normal) -> [dU].
 
@@ -338,7 +363,7 @@ def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x
        zero-padded to I).
     """
     I = layout.width_in
-    h = jnp.broadcast_to(x, (n,) + x.shape)
+    h = x
     inputs = []
     for layer in range(depth):
         s = first + layer * n
@@ -346,8 +371,16 @@ def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x
         o = max(fan_out for _, fan_out in layout.shapes[s: s + n])
         if h.shape[-1] != a:
             raise ValueError(f"slot {s}: input of width {h.shape[-1]}, expected {a}")
-        inputs.append(fit_width(h, I))
-        pre = jnp.matmul(h, W[s: s + n, :a, :o]) + W[s: s + n, I:, :o] + deltas[s: s + n, :, :o]
+        kernel = W[s: s + n, :a, :o]
+        if layer == 0:
+            # the shared input is not copied n times: the product's gradient with respect to x
+            # then contracts over the n networks too, with no separate sum
+            inputs.append(jnp.broadcast_to(fit_width(x, I), (n,) + x.shape[:-1] + (I,)))
+            product = jnp.einsum("ba,nao->nbo", x, kernel)
+        else:
+            inputs.append(fit_width(h, I))
+            product = jnp.matmul(h, kernel)
+        pre = product + W[s: s + n, I:, :o] + deltas[s: s + n, :, :o]
         if layer == depth - 1:
             return pre, jnp.concatenate(inputs, axis=0)
         h = act(pre)

@@ -74,7 +74,7 @@ from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepDat
                                    default_float, dense_chain, dense_layout, dense_stack,
                                    dense_value_and_grad, flax_dense_layers, flax_dense_params,
                                    identity_normalization, normalize_input, pack_dense, pack_rows,
-                                   target_logdet, unpack_dense, unpack_rows)
+                                   symmetrize, target_logdet, unpack_dense, unpack_rows)
 from gmr_jax.policies.mlp import closed_form_variance
 
 
@@ -275,9 +275,36 @@ def fused_head(init_var: float, std_range: float, offdiag_bound: float, G, g, fu
 fused_head.defvjp(_fused_head_fwd, _fused_head_bwd)
 
 
-def symmetrize(A: Array) -> Array:
-    """½(A + Aᵀ) over the last two axes (A itself, bit for bit, if A is symmetric)."""
-    return 0.5 * (A + jnp.swapaxes(A, -1, -2))
+def _reparameterize_fwd(h, eps):
+    latent = eps.shape[-1]
+    mu, logvar = h[..., :latent], h[..., latent:]
+    std, var = jnp.exp(0.5 * logvar), jnp.exp(logvar)
+    kl = jnp.sum(jnp.square(mu) + var - logvar - 1.0, axis=-1)
+    return (mu + std * eps, kl), (mu, std, var, eps)
+
+
+def _reparameterize_bwd(res, cts):
+    mu, std, var, eps = res
+    ct_z, ct_kl = cts
+    ct_kl = ct_kl[..., None]
+    g_mu = ct_z + ct_kl * (2.0 * mu)
+    g_logvar = ct_z * eps * (0.5 * std) + ct_kl * (var - 1.0)
+    return jnp.concatenate([g_mu, g_logvar], axis=-1), None
+
+
+@jax.custom_vjp
+def reparameterize(h, eps):
+    """The latent sample and the latent term with their gradient in one elementwise step.
+
+    Args: h [b, 2·latent] the encoder's output (μ_z, log σ²_z); eps [b, latent] the noise.
+    Returns: (z [b, latent] = μ + exp(½ log σ²)·ε, kl [b] = Σ_j (μ_j² + σ_j² − log σ_j² − 1)),
+      computed as ``loss`` computes them; the gradient is autodiff's, written out (one kernel
+      instead of three in the S-step's loop).
+    """
+    return _reparameterize_fwd(h, eps)[0]
+
+
+reparameterize.defvjp(_reparameterize_fwd, _reparameterize_bwd)
 
 
 class GMR(NamedTuple):
@@ -338,9 +365,9 @@ def _cholesky_parts(full: Array, init_var: float, std_range: float, offdiag_boun
     t [..., dU] = tanh(r_ii/s)))."""
     dU = full.shape[-1]
     s = math.log(std_range)
-    # the diagonal as a masked row sum (exact: one entry and zeros) rather than jnp.diagonal, a
-    # gather, one more kernel in the S-step's loop
-    t = jnp.tanh(jnp.sum(jnp.where(jnp.eye(dU, dtype=bool), full, 0.0), axis=-1) / s)
+    # the diagonal as a strided slice of the flattened square (jnp.diagonal is a gather, one more
+    # kernel in the S-step's loop; a slice fuses into its consumers)
+    t = jnp.tanh(full.reshape(full.shape[:-2] + (dU * dU,))[..., :: dU + 1] / s)
     log_sigma = 0.5 * math.log(init_var) + s * t
     strict = jnp.tril(jnp.ones((dU, dU), dtype=bool), -1)
     T = jnp.tanh(full / offdiag_bound)
@@ -506,11 +533,12 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
 
     halved = ("action", "gain", "cov")  # ½ of a batch mean: the factor of the Gaussian KL
 
-    def combine(rows, mu, logvar, xhat, logdet, action, gain, tr, du, stacked: bool = False):
+    def combine(rows, kl, xhat, logdet, action, gain, tr, du, stacked: bool = False):
         """The loss and its aux dict from a minibatch's per-row pieces.
 
-        Args: rows (LossRows or FusedRows of [b, ...]: xn, wt, logdet); mu, logvar [b, latent];
-          xhat [b, dX]; logdet [b] of Ψ_Σ; action, gain, tr [b] and du [b, dU] (``quadratics``);
+        Args: rows (LossRows or FusedRows of [b, ...]: xn, wt, logdet); kl [b] the latent term
+          Σ_j (μ_j² + σ_j² − log σ_j² − 1); xhat [b, dX]; logdet [b] of Ψ_Σ; action, gain, tr [b]
+          and du [b, dU] (``quadratics``);
           stacked: take all batch means as one reduction of the stacked per-row terms (the
           packed form: one kernel instead of six; ``action_mse`` then averages each row first,
           the same mean summed in another order) instead of one mean per term (``loss``).
@@ -519,7 +547,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         dU = du.shape[-1]
         per_row = {
             "recon": w * jnp.sum(jnp.square(rows.xn - xhat), axis=-1),
-            "latent_kl": w * 0.5 * jnp.sum(jnp.square(mu) + jnp.exp(logvar) - logvar - 1.0, axis=-1),
+            "latent_kl": w * 0.5 * kl,
             "action": action,
             "gain": gain,
             # tr(wP L Lᵀ) and the constants of the Gaussian KL
@@ -545,7 +573,8 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         mu, logvar = apply(params, GMRNet.encode, rows.xn)
         z = mu + jnp.exp(0.5 * logvar) * noise(key, mu.shape[0], mu.dtype)
         G, g, L, logdet = head(params, z)
-        return combine(rows, mu, logvar, decode(params, z), logdet, *quadratics(params.norm, rows, G, g, L))
+        kl = jnp.sum(jnp.square(mu) + jnp.exp(logvar) - logvar - 1.0, axis=-1)
+        return combine(rows, kl, decode(params, z), logdet, *quadratics(params.norm, rows, G, g, L))
 
     # ---- the S-step's packed form (TrainingForm): the same loss, fewer operations per step.
     # Slots of the dense layout: the encoder's layers, then the decoder's and the translation
@@ -617,8 +646,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         lay, side = layout(dX, dU)
         act = functools.partial(nn.leaky_relu, negative_slope=cfg.negative_slope)
         enc, inputs = dense_stack(W, lay, 0, 1, n_enc, rows.xn, act, deltas)
-        mu, logvar = enc[0, :, : cfg.latent], enc[0, :, cfg.latent: 2 * cfg.latent]
-        z = mu + jnp.exp(0.5 * logvar) * eps
+        z, kl = reparameterize(enc[0, :, : 2 * cfg.latent], eps)
         if side:
             out, dt_inputs = dense_stack(W, lay, n_enc, 2, n_dec, z, act, deltas)
             xhat, out_head, inputs = out[0], out[1], [inputs, dt_inputs]
@@ -631,7 +659,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         action, gain, tr, logdet, du = fused_head(
             cfg.init_var, cfg.cov_std_range, cfg.cov_offdiag_bound, G, g,
             square.reshape(square.shape[:-1] + (dU, dU)), scale, rows.xs, rows.tgt_mu, rows.prc, rows.K)
-        value, aux = combine(rows, mu, logvar, xhat[:, :dX], logdet, action, gain, tr, du, stacked=True)
+        value, aux = combine(rows, kl, xhat[:, :dX], logdet, action, gain, tr, du, stacked=True)
         return value, (aux, jnp.concatenate(inputs, axis=0))
 
     def packed_value_and_grad(params: PolicyParams, theta, rows, eps):

@@ -23,8 +23,8 @@ from gmr_jax.config import MLPConfig
 from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, TrainingForm, default_float,
                                    dense_chain, dense_layout, dense_stack, dense_value_and_grad,
                                    flax_dense_layers, flax_dense_params, identity_normalization,
-                                   normalize_input, pack_dense, pack_rows, unpack_dense, unpack_rows,
-                                   weighted_action_error)
+                                   normalize_input, pack_dense, pack_rows, quadratic_rows, symmetrize,
+                                   unpack_dense, unpack_rows, weighted_action_error)
 
 
 ACTIVATION_FNS: dict[str, Callable] = {
@@ -59,10 +59,12 @@ class MLP(nn.Module):
 
 
 class LossRows(NamedTuple):
-    """The per-datum constants of the MLP loss (shapes per row; a batch adds a leading axis).
+    """The per-datum constants of the MLP loss in the S-step's packed form (shapes per row; a
+    batch adds a leading axis).
 
     Attributes:
-      xn: [dX] the normalised state x̃; tgt_mu: [dU] target action; prc: [dU, dU] w·P.
+      xn: [dX] the normalised state x̃; tgt_mu: [dU] target action; prc: [dU, dU] w·P,
+        symmetrised (the loss sees only the symmetric part; ``quadratic_rows`` needs it).
     """
 
     xn: jax.Array
@@ -109,15 +111,12 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
         del x
         return jnp.diag(params.var)
 
-    def loss_terms(u, tgt_mu, prc):
-        """½·mean_b (u_b − û_b)ᵀ (w·P)_b (u_b − û_b) and its aux dict: u, tgt_mu [b, dU], prc [b, dU, dU]."""
-        value = weighted_action_error(u, tgt_mu, prc)
-        return value, {"action_mse": jnp.mean(jnp.square(u - tgt_mu))}
-
     def loss(params: PolicyParams, batch: SStepData, key):
         """½·mean_b (u_b − û_b)ᵀ (w·P)_b (u_b − û_b); the key is unused (deterministic net)."""
         del key
-        return loss_terms(mean(params, batch.x), batch.tgt_mu, batch.tgt_prc)
+        u = mean(params, batch.x)
+        value = weighted_action_error(u, batch.tgt_mu, batch.tgt_prc)
+        return value, {"action_mse": jnp.mean(jnp.square(u - batch.tgt_mu))}
 
     # ---- the S-step's packed form (TrainingForm): the same loss, fewer operations per step.
     n_layers = len(cfg.hidden) + 1
@@ -136,7 +135,7 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
 
     def rows(params: PolicyParams, data: SStepData):
         return pack_rows(LossRows(xn=normalize_input(params.norm, data.x), tgt_mu=data.tgt_mu,
-                                  prc=data.tgt_prc))
+                                  prc=symmetrize(data.tgt_prc)))
 
     def packed_value_and_grad(params: PolicyParams, theta, rows, noise):
         """TrainingForm.value_and_grad: θ, rows [b, F] -> ((value, aux), grad); noise unused."""
@@ -148,8 +147,9 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
 
         def f(deltas):
             out, inputs = dense_stack(W, lay, 0, 1, n_layers, batch.xn, ACTIVATION_FNS[cfg.activation], deltas)
-            value, aux = loss_terms(out[0, :, :dU], batch.tgt_mu, batch.prc)
-            return value, (aux, inputs)
+            du = out[0, :, :dU] - batch.tgt_mu
+            value = 0.5 * jnp.mean(quadratic_rows(du, batch.prc))
+            return value, ({"action_mse": jnp.mean(jnp.square(du))}, inputs)
 
         (value, aux), grad = dense_value_and_grad(f, W, rows.shape[0])
         return (value, aux), grad.reshape(-1)
