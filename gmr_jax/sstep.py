@@ -13,6 +13,15 @@ Toolbox rules (mdgps-toolbox.md §4.3) with the paper's optimiser settings (gmr-
 4. ``policy.finalize`` on the whole data set (MLP: closed-form variance).
 
 The paper counts epochs (400) where the toolbox counts steps; we follow the paper.
+
+Two forms of the same optimisation (``sstep``'s ``impl``), equal to round-off
+(tests/test_sstep.py): "reference", autodiff of ``policy.loss`` through ``params.net`` in a loop
+per epoch; and "packed", which runs the policy's ``TrainingForm`` in one loop over all minibatch
+steps with everything that does not depend on the weights (shuffles, latent noise, per-datum
+constants, Adam's bias corrections) prepared before the loop. A GPU runs each operation of a
+step as a kernel launch, and the packed form needs about half as many; on a CPU, where a step
+costs arithmetic and memory traffic instead, its zero padding makes it slower, so the backend
+picks the default (``default_impl``).
 """
 
 from __future__ import annotations

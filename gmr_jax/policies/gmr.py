@@ -582,23 +582,22 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
     # layer, slots interleaved layer by layer), otherwise one after the other. The translation
     # network's last layer emits the packed head (head_columns).
 
-    def layout(dX: int, dU: int):
-        """(DenseLayout, side_by_side) for a state of dX and an action of dU entries."""
-        enc = dense_chain(dX, cfg.encoder_hidden, 2 * cfg.latent)
-        dec = dense_chain(cfg.latent, cfg.decoder_hidden, dX)
-        trans = dense_chain(cfg.latent, cfg.translation_hidden, packed_head_size(dX, dU))
-        side_by_side = len(dec) == len(trans)
-        rest = [s for pair in zip(dec, trans) for s in pair] if side_by_side else dec + trans
-        return dense_layout(enc + rest), side_by_side
-
     n_enc = len(cfg.encoder_hidden) + 1
     n_dec = len(cfg.decoder_hidden) + 1
     n_trans = len(cfg.translation_hidden) + 1
+    side_by_side = n_dec == n_trans
 
     def slot_order(enc, dec, trans, side_by_side):
         """Per-network lists of layers -> the list in slot order."""
         rest = [a for pair in zip(dec, trans) for a in pair] if side_by_side else dec + trans
         return enc + rest
+
+    def layout(dX: int, dU: int):
+        """(DenseLayout, side_by_side) for a state of dX and an action of dU entries."""
+        return dense_layout(slot_order(dense_chain(dX, cfg.encoder_hidden, 2 * cfg.latent),
+                                       dense_chain(cfg.latent, cfg.decoder_hidden, dX),
+                                       dense_chain(cfg.latent, cfg.translation_hidden, packed_head_size(dX, dU)),
+                                       side_by_side)), side_by_side
 
     def network_order(slots, side_by_side):
         """The inverse of slot_order: slots -> (enc, dec, trans) lists of layers."""
