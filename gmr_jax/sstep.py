@@ -19,9 +19,9 @@ Two forms of the same optimisation (``sstep``'s ``impl``), equal to round-off
 per epoch; and "packed", which runs the policy's ``TrainingForm`` in one loop over all minibatch
 steps with everything that does not depend on the weights (shuffles, latent noise, per-datum
 constants, Adam's bias corrections) prepared before the loop. A GPU runs each operation of a
-step as a kernel launch, and the packed form needs about half as many; on a CPU, where a step
-costs arithmetic and memory traffic instead, its zero padding makes it slower, so the backend
-picks the default (``default_impl``).
+step as a kernel launch, and the packed form needs far fewer (GMR: about half); on a CPU, where
+a step costs arithmetic and memory traffic instead, its zero padding makes it slower, so the
+backend picks the default (``default_impl``).
 """
 
 from __future__ import annotations
@@ -170,10 +170,6 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
     return params, metrics
 
 
-def _adam(cfg: SStepConfig):
-    return optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
-
-
 def _epoch_keys(key, cfg: SStepConfig):
     """The per-epoch keys: (shuffle keys [epochs], loss keys [epochs]) (the same split for both
     implementations, so they take the same minibatches and draw the same noise)."""
@@ -265,7 +261,7 @@ def _fit_reference(policy: Policy, params: PolicyParams, train: SStepData, key, 
     B = train.x.shape[0]
     bs = cfg.batch_size
     nb = B // bs
-    opt = _adam(cfg)
+    opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
 
     # The optimiser works on one flat parameter vector: Adam's update and the L2 term are then
     # one fused kernel each instead of one per weight matrix (a GPU step is launch-bound).
