@@ -214,8 +214,7 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     Everything that does not depend on the weights is done before the loop: the per-datum
     constants (one matrix, so a minibatch is one gather), every epoch's shuffle, every
     minibatch's random numbers and Adam's bias corrections. The loop body is then the gather,
-    ``form.value_and_grad``, Adam and the L2 term of the new weights (for the next step's
-    objective: computed where the new weights are, it can share their kernel).
+    ``form.value_and_grad``, the L2 term and Adam.
     Returns (net, (loss [epochs], data_loss [epochs], aux)).
     """
     B = train.x.shape[0]
@@ -235,19 +234,19 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     stats_def = []
 
     def step(carry, inputs):
-        theta, mu, nu, l2 = carry
+        theta, mu, nu = carry
         i, eps, c1, c2 = inputs
         (value, aux), grad = form.value_and_grad(params, theta, rows[i], eps)
         # d(β·Σθ²)/dθ as autodiff forms it, β·(2θ)
         theta_new, mu, nu = adam_update(cfg, theta, mu, nu, grad + cfg.weight_decay * (2.0 * theta),
                                         c1, c2)
-        stats, treedef = _stats(value + cfg.weight_decay * l2, value, aux)
+        stats, treedef = _stats(value + cfg.weight_decay * l2_penalty(theta), value, aux)
         stats_def.append(treedef)
-        return (theta_new, mu, nu, l2_penalty(theta_new)), stats
+        return (theta_new, mu, nu), stats
 
     zeros = jnp.zeros_like(theta0)
     c1, c2 = adam_corrections(cfg, steps, theta0.dtype)
-    (theta, *_), stats = lax.scan(step, (theta0, zeros, zeros, l2_penalty(theta0)), (idx, noise, c1, c2),
+    (theta, *_), stats = lax.scan(step, (theta0, zeros, zeros), (idx, noise, c1, c2),
                                   unroll=min(cfg.unroll, steps))
     means = jnp.mean(stats.reshape(cfg.epochs, nb, -1), axis=1)
     return form.unpack(params, theta), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
