@@ -9,14 +9,25 @@ states, GMR adds the 80 forward-pass means; AB doubles both) for several loop un
 
 The data are synthetic (random states, gains, symmetric positive-definite precisions and state
 covariances) with the shapes of the real ones: the time of a step does not depend on the values.
+
+``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
+the default on a GPU; the benchmark's default) beside the reference form it is tested against
+(autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run. Every row also counts the operations of the compiled
+minibatch loop's body (the while-loop body of the optimised HLO that launches the most matrix
+products; ``body_ops`` by opcode, ``ops_per_step`` = all but parameters, tuples, constants and
+bitcasts, divided by the steps per iteration). On a GPU each of those operations is a kernel
+launch; on a CPU the count is only a guide (XLA fuses differently there, and the CPU runs the
+random number generator as a loop where a GPU runs one kernel).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import os
 import platform
+import re
 import statistics
 import time
 
@@ -44,18 +55,141 @@ def synthetic_data(cfg: config.Config, key, dtype) -> policies.SStepData:
                               wt=jnp.ones((B,), dtype), K=K, k=k, state_cov=cov)
 
 
+# HLO instructions that launch nothing: they name or regroup buffers.
+FREE_OPS = frozenset({"parameter", "get-tuple-element", "tuple", "constant", "bitcast"})
+
+
+def _hlo_computations(text: str) -> dict[str, list[str]]:
+    """Optimised HLO text -> {computation name: its instruction lines}."""
+    comps, name = {}, None
+    for line in text.splitlines():
+        if name is None:
+            m = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{\s*$", line)
+            if m:
+                name, comps[m.group(1)] = m.group(1), []
+        elif line.startswith("}"):
+            name = None
+        else:
+            comps[name].append(line)
+    return comps
+
+
+def _hlo_opcode(line: str) -> str | None:
+    """The opcode of one HLO instruction line (None for other lines)."""
+    m = re.match(r"\s*(?:ROOT )?%?[\w.\-]+ = (.*)$", line)
+    if not m:
+        return None
+    rest = m.group(1)
+    if rest.startswith("("):  # a tuple shape: skip to its closing parenthesis
+        depth = 0
+        for i, c in enumerate(rest):
+            depth += (c == "(") - (c == ")")
+            if depth == 0:
+                rest = rest[i + 1:]
+                break
+    else:
+        rest = rest.split(" ", 1)[1]
+    return rest.strip().split("(", 1)[0]
+
+
+def _count_ops(comps: dict[str, list[str]], name: str) -> collections.Counter:
+    """Operations by opcode of one computation, without FREE_OPS, counting a ``call`` of a GPU
+    command buffer (XLA outlines launch sequences into computations named command_buffer…) as
+    the operations of the computation it calls."""
+    ops = collections.Counter()
+    for line in comps[name]:
+        op = _hlo_opcode(line)
+        if op is None or op in FREE_OPS:
+            continue
+        callee = re.search(r"to_apply=%?(command_buffer[\w.\-]*)", line) if op == "call" else None
+        if callee and callee.group(1) in comps:
+            ops += _count_ops(comps, callee.group(1))
+        else:
+            ops[op] += 1
+    return ops
+
+
+def _products(comps: dict[str, list[str]], name: str) -> int:
+    """Matrix products launched by one computation: dots, GEMM custom calls (cuBLAS) and fusions
+    around a dot (Triton GEMMs, the CPU's dot fusions), not those inside nested loops."""
+    count = 0
+    for line in comps[name]:
+        op = _hlo_opcode(line)
+        callee = re.search(r"calls=%?([\w.\-]+)", line)
+        if (op == "dot" or (op == "custom-call" and "gemm" in line.lower())
+                or (op == "fusion" and callee and any(_hlo_opcode(x) == "dot" for x in comps.get(callee.group(1), [])))):
+            count += 1
+    return count
+
+
+def loop_body_ops(hlo_text: str) -> dict[str, int]:
+    """Operations by opcode in the body of an optimised HLO module's S-step loop, without
+    FREE_OPS: the while loop whose body launches the most matrix products (the networks'),
+    {} if there is none."""
+    comps = _hlo_computations(hlo_text)
+    best, best_key = {}, (0, 0)
+    for lines in comps.values():
+        for line in lines:
+            if _hlo_opcode(line) == "while":
+                body = re.search(r"body=%?([\w.\-]+)", line).group(1)
+                ops = _count_ops(comps, body)
+                key = (_products(comps, body), sum(ops.values()))
+                if key > best_key:
+                    best, best_key = ops, key
+    return dict(sorted(best.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(prog="python -m benchmarks.sstep", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--algorithm", default="gmr,mdgps", help="comma-separated: gmr, mdgps")
     p.add_argument("--scenario", default="A", help="comma-separated scenarios (data size)")
     p.add_argument("--unroll", default="1", help="comma-separated unroll factors")
+    p.add_argument("--impl", default="packed", help="comma-separated S-step forms: packed, reference")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
     p.add_argument("--repeats", type=int, default=3, help="timed S-steps (median)")
     p.add_argument("--precision", default="float64", choices=("float32", "float64"))
     p.add_argument("--out", help="write the results as JSON to this file")
     p.add_argument("--hlo-dir", help="also write each compiled program's HLO text here")
     return p.parse_args(argv)
+
+
+def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> dict:
+    """Compile and time one S-step configuration; returns its result row (and prints it)."""
+    cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll)
+    params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
+    data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
+    pol = policies.for_config(cfg)
+    fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))
+    t0 = time.perf_counter()
+    compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
+    compile_s = time.perf_counter() - t0
+    hlo = compiled.as_text()
+    if args.hlo_dir:
+        os.makedirs(args.hlo_dir, exist_ok=True)
+        with open(os.path.join(args.hlo_dir, f"{algorithm}_{scenario}_u{unroll}_{impl}.hlo"), "w") as f:
+            f.write(hlo)
+    times = []
+    for r in range(args.repeats):
+        t0 = time.perf_counter()
+        out, info = compiled(params, data, jax.random.PRNGKey(3 + r))
+        jax.block_until_ready(out)
+        times.append(time.perf_counter() - t0)
+    nb = data.x.shape[0] // cfg.sstep.batch_size
+    steps = args.epochs * nb
+    # steps per iteration of the minibatch loop: "packed" loops over all steps, "reference"
+    # over one epoch's
+    per_iteration = min(unroll, steps if impl == "packed" else nb)
+    body = loop_body_ops(hlo)
+    run_s = statistics.median(times)
+    row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
+           "rows": int(data.x.shape[0]), "adam_steps": steps, "compile_s": compile_s,
+           "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": bool(info["finite"]),
+           "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration}
+    print(f"{algorithm:5s} {scenario:2s} unroll {unroll:3d} {impl:9s}: {run_s:7.3f} s for {steps} steps "
+          f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
+          f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
+    return row
 
 
 def main(argv=None) -> int:
@@ -71,34 +205,8 @@ def main(argv=None) -> int:
     for algorithm in args.algorithm.split(","):
         for scenario in args.scenario.split(","):
             for unroll in [int(u) for u in args.unroll.split(",")]:
-                cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs,
-                                   sstep__unroll=unroll)
-                params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
-                data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
-                pol = policies.for_config(cfg)
-                fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep))
-                t0 = time.perf_counter()
-                compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
-                compile_s = time.perf_counter() - t0
-                if args.hlo_dir:
-                    os.makedirs(args.hlo_dir, exist_ok=True)
-                    with open(os.path.join(args.hlo_dir, f"{algorithm}_{scenario}_u{unroll}.hlo"), "w") as f:
-                        f.write(compiled.as_text())
-                times = []
-                for r in range(args.repeats):
-                    t0 = time.perf_counter()
-                    out, info = compiled(params, data, jax.random.PRNGKey(3 + r))
-                    jax.block_until_ready(out)
-                    times.append(time.perf_counter() - t0)
-                steps = args.epochs * (data.x.shape[0] // cfg.sstep.batch_size)
-                run_s = statistics.median(times)
-                row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll,
-                       "rows": int(data.x.shape[0]), "adam_steps": steps, "compile_s": compile_s,
-                       "run_s": run_s, "us_per_step": 1e6 * run_s / steps,
-                       "finite": bool(info["finite"])}
-                rows.append(row)
-                print(f"{algorithm:5s} {scenario:2s} unroll {unroll:3d}: {run_s:7.3f} s for {steps} steps "
-                      f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s)", flush=True)
+                for impl in args.impl.split(","):
+                    rows.append(measure(algorithm, scenario, unroll, impl, args, dtype))
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"env": env, "rows": rows}, f, indent=1)

@@ -225,7 +225,7 @@ class StepConfig:
                              f"step.max_step_mult={self.max_step_mult!r}")
 
 
-# How a regularisation value enters a block of a joint covariance (dynamics.regularizer_matrix):
+# How a regularisation value enters a block of a joint covariance (prior.regularizer_matrix):
 # "ridge" adds value·I (what the toolbox meant, the default), "toolbox" adds value to every entry
 # of the block (value·11ᵀ, the toolbox's numpy broadcast, rank one), for exact toolbox numerics.
 REGULARIZERS = ("ridge", "toolbox")
@@ -308,6 +308,9 @@ class PolicyPriorConfig:
 # Policy and S-step (mdgps-toolbox.md §4.3, gmr-method.md §1–§3)
 
 
+SSTEP_IMPLS = ("auto", "packed", "reference")
+
+
 @dataclass(frozen=True)
 class SStepConfig:
     """The supervised S-step (paper: Adam, lr 1e-3, 400 epochs, batch 20, β = 2e-4).
@@ -322,6 +325,10 @@ class SStepConfig:
       obs_std_floor: floor of the input standard deviation in the normalisation (toolbox 1e-3).
       weight_median_floor: weights above this take part in the median of the weight rule (1e-2).
       weight_clip: weights are clipped at weight_clip × median before dividing by it (2).
+      impl: the S-step's form (``gmr_jax.sstep``, equal to round-off): "packed" (one packed weight
+        vector and data matrix, a few fused operations per minibatch step: fast on a GPU),
+        "reference" (per-layer Flax networks and optax: fast on a CPU), or "auto" (packed on an
+        accelerator, reference on a CPU).
       unroll: minibatch steps per iteration of the compiled loop (speed only: the same steps in
         the same order). 1 by default: on an H100, 4 saves about 8 % per step but adds about
         10 s to the compilation of a GMR iteration, more than the default run gains
@@ -338,9 +345,11 @@ class SStepConfig:
     obs_std_floor: float = 1e-3
     weight_median_floor: float = 1e-2
     weight_clip: float = 2.0
+    impl: str = "auto"
     unroll: int = 1
 
     def __post_init__(self):
+        check_choice("sstep.impl", self.impl, SSTEP_IMPLS)
         for name in ("epochs", "batch_size", "unroll"):
             check_positive_int(f"sstep.{name}", getattr(self, name))
         for name in ("lr", "eps", "obs_std_floor", "weight_clip"):

@@ -272,7 +272,8 @@ def sstep_data(traj: LinearGaussianPolicy, X: Array, marginals: Marginals | None
 
 def fit_policy(cfg: Config, params, data: policies.SStepData, key: Array):
     """One S-step of the configured policy: (new params, last epoch's loss [], [] bool finite)."""
-    new_params, info = sstep_lib.sstep(policies.for_config(cfg), params, data, key, cfg.sstep)
+    impl = None if cfg.sstep.impl == "auto" else cfg.sstep.impl
+    new_params, info = sstep_lib.sstep(policies.for_config(cfg), params, data, key, cfg.sstep, impl=impl)
     return new_params, info["loss"][-1], info["finite"]
 
 

@@ -13,6 +13,15 @@ Toolbox rules (mdgps-toolbox.md §4.3) with the paper's optimiser settings (gmr-
 4. ``policy.finalize`` on the whole data set (MLP: closed-form variance).
 
 The paper counts epochs (400) where the toolbox counts steps; we follow the paper.
+
+Two forms of the same optimisation (``sstep``'s ``impl``), equal to round-off
+(tests/test_sstep.py): "reference", autodiff of ``policy.loss`` through ``params.net`` in a loop
+per epoch; and "packed", which runs the policy's ``TrainingForm`` in one loop over all minibatch
+steps with everything that does not depend on the weights (shuffles, latent noise, per-datum
+constants, Adam's bias corrections) prepared before the loop. A GPU runs each operation of a
+step as a kernel launch, and the packed form needs far fewer (GMR: about half); on a CPU, where
+a step costs arithmetic and memory traffic instead, its zero padding makes it slower, so the
+backend picks the default (``default_impl``).
 """
 
 from __future__ import annotations
@@ -23,9 +32,10 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jax import lax
 
+from gmr_jax import linalg
 from gmr_jax.config import SStepConfig
-from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, l2_penalty,
-                                   target_logdet)
+from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
+                                   l2_penalty, target_logdet)
 
 
 def set_normalization(params: PolicyParams, x, weights=None, std_floor: float = 1e-3) -> PolicyParams:
@@ -85,13 +95,22 @@ def normalize_weights(wt, median_floor: float = 1e-2, clip: float = 2.0):
     return jnp.minimum(w, clip * mn) / mn
 
 
-def _all_finite(tree) -> jax.Array:
-    leaves = [jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(tree)
-              if jnp.issubdtype(leaf.dtype, jnp.inexact)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+IMPLS = ("packed", "reference")
 
 
-def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStepConfig = SStepConfig()):
+def default_impl() -> str:
+    """The S-step form for JAX's default backend: "packed" on an accelerator, "reference" on a CPU.
+
+    On a GPU a minibatch step is bound by kernel launches, which the packed form cuts. On a CPU
+    it is bound by arithmetic and memory traffic, and there the packed form's zero padding (about
+    three times GMR's weights in Adam's update and in the single weight-gradient product) costs
+    more than the operations it saves (benchmarks/sstep.py measures both).
+    """
+    return "reference" if jax.default_backend() == "cpu" else "packed"
+
+
+def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStepConfig = SStepConfig(),
+          *, impl: str | None = None):
     """One S-step: train ``params.net`` on ``data`` and finalise the policy.
 
     Args:
@@ -100,6 +119,11 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
       data: SStepData with B rows (B ≥ cfg.batch_size); wt [B] raw weights (e.g. constant).
       key: PRNG key (typed or raw uint32) for the shuffles and the policy's loss.
       cfg: SStepConfig (static).
+      impl: "packed": the policy's ``training`` form in one loop over all minibatch steps (falls
+        back to "reference" for a policy without one); "reference": autodiff of ``policy.loss``
+        through ``params.net`` in a loop per epoch; None: ``default_impl()``. Both take the same
+        minibatches in the same order with the same random numbers; their results agree to
+        round-off (tests/test_sstep.py).
     Returns:
       (params, metrics) with metrics:
         loss: [epochs] mean objective (data term + β·Σθ²) over each epoch's minibatches, each
@@ -110,10 +134,12 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
         finite: [] bool, every loss and every parameter after the S-step is finite (a False must
           stop the caller: the new params are unusable).
     """
+    impl = default_impl() if impl is None else impl
+    if impl not in IMPLS:
+        raise ValueError(f"sstep impl={impl!r}: allowed values are {IMPLS}")
     B = data.x.shape[0]
     bs = cfg.batch_size
-    nb = B // bs
-    if nb < 1:
+    if B // bs < 1:
         raise ValueError(f"S-step data has B={B} rows, fewer than sstep.batch_size={bs}")
 
     wn = normalize_weights(data.wt, cfg.weight_median_floor, cfg.weight_clip)
@@ -123,6 +149,112 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
     logdet = target_logdet(data.tgt_prc, wn) if data.tgt_logdet is None else data.tgt_logdet
     train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn, tgt_logdet=logdet)
 
+    if impl == "packed" and policy.training is not None:
+        net, (loss, data_loss, aux) = _fit_packed(policy.training, params, train, key, cfg)
+    else:
+        net, (loss, data_loss, aux) = _fit_reference(policy, params, train, key, cfg)
+
+    params = policy.finalize(params._replace(net=net), data._replace(wt=wn))
+    metrics = {
+        "loss": loss,
+        "data_loss": data_loss,
+        "aux": aux,
+        "weights_ok": jnp.sum(data.wt) > 0,
+        "finite": jnp.all(jnp.isfinite(loss)) & linalg.all_finite(params),
+    }
+    return params, metrics
+
+
+def _epoch_keys(key, cfg: SStepConfig):
+    """The per-epoch keys: (shuffle keys [epochs], loss keys [epochs]) (the same split for both
+    implementations, so they take the same minibatches and draw the same noise)."""
+    keys = jax.vmap(jax.random.split)(jax.random.split(key, cfg.epochs))
+    return keys[:, 0], keys[:, 1]
+
+
+def _minibatches(k_perm, B: int, nb: int, bs: int):
+    """One epoch's shuffle: [nb, bs] row indices (the B mod bs leftover is dropped)."""
+    return jax.random.permutation(k_perm, B)[: nb * bs].reshape(nb, bs)
+
+
+def _stats(total, value, aux):
+    """A step's scalars as one vector (one write per step, not one per scalar) and its tree."""
+    stats, treedef = jax.tree_util.tree_flatten((total, value, aux))
+    return jnp.stack(stats), treedef
+
+
+def adam_corrections(cfg: SStepConfig, steps: int, dtype):
+    """Adam's bias corrections (1 − b1^t, 1 − b2^t) [steps] for t = 1 … steps, computed as
+    ``optax.adam`` computes them at step t."""
+    count = jnp.arange(1, steps + 1, dtype=jnp.int32)
+    return (1 - cfg.b1 ** count).astype(dtype), (1 - cfg.b2 ** count).astype(dtype)
+
+
+def adam_update(cfg: SStepConfig, theta, mu, nu, grad, c1, c2):
+    """One step of ``optax.adam(cfg.lr, cfg.b1, cfg.b2, cfg.eps)``, operation for operation, with
+    its bias corrections c1, c2 (``adam_corrections``) given: θ, μ, ν, grad [n] -> (θ, μ, ν).
+
+    Taking the corrections as inputs keeps the step counter and the powers b^t, scalar kernels
+    on a GPU, out of the S-step's loop.
+    """
+    mu = (1 - cfg.b1) * grad + cfg.b1 * mu
+    nu = (1 - cfg.b2) * grad ** 2 + cfg.b2 * nu
+    update = -cfg.lr * ((mu / c1) / (jnp.sqrt(nu / c2 + 0.0) + cfg.eps))
+    return (theta + update).astype(theta.dtype), mu, nu
+
+
+def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
+    """The Adam loop on ``form``: one scan over all epochs' minibatch steps.
+
+    Everything that does not depend on the weights is done before the loop: the per-datum
+    constants (one matrix, so a minibatch is one gather), every epoch's shuffle, every
+    minibatch's random numbers and Adam's bias corrections. The loop body is then the gather,
+    ``form.value_and_grad``, the L2 term and Adam.
+    Returns (net, (loss [epochs], data_loss [epochs], aux)).
+    """
+    B = train.x.shape[0]
+    bs = cfg.batch_size
+    nb = B // bs
+    steps = cfg.epochs * nb
+    k_perm, k_loss = _epoch_keys(key, cfg)
+    idx = jax.vmap(lambda k: _minibatches(k, B, nb, bs))(k_perm).reshape(steps, bs)
+    theta0 = form.pack(params)
+    rows = form.rows(params, train)
+    if form.noise is None:
+        noise = None
+    else:
+        step_keys = jax.vmap(lambda k: jax.random.split(k, nb))(k_loss)
+        step_keys = step_keys.reshape((steps,) + step_keys.shape[2:])
+        noise = jax.vmap(lambda k: form.noise(k, bs, theta0.dtype))(step_keys)
+    stats_def = []
+
+    def step(carry, inputs):
+        theta, mu, nu = carry
+        i, eps, c1, c2 = inputs
+        (value, aux), grad = form.value_and_grad(params, theta, rows[i], eps)
+        # d(β·Σθ²)/dθ as autodiff forms it, β·(2θ)
+        theta_new, mu, nu = adam_update(cfg, theta, mu, nu, grad + cfg.weight_decay * (2.0 * theta),
+                                        c1, c2)
+        stats, treedef = _stats(value + cfg.weight_decay * l2_penalty(theta), value, aux)
+        stats_def.append(treedef)
+        return (theta_new, mu, nu), stats
+
+    zeros = jnp.zeros_like(theta0)
+    c1, c2 = adam_corrections(cfg, steps, theta0.dtype)
+    (theta, *_), stats = lax.scan(step, (theta0, zeros, zeros), (idx, noise, c1, c2),
+                                  unroll=min(cfg.unroll, steps))
+    means = jnp.mean(stats.reshape(cfg.epochs, nb, -1), axis=1)
+    return form.unpack(params, theta), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
+
+
+def _fit_reference(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
+    """The Adam loop on autodiff of ``policy.loss``: a scan over epochs of scans over minibatches,
+    gathering each field and drawing the loss's random numbers inside the loop (the S-step's
+    first form, kept as the reference of "packed" and for policies without a TrainingForm).
+    Returns (net, (loss [epochs], data_loss [epochs], aux))."""
+    B = train.x.shape[0]
+    bs = cfg.batch_size
+    nb = B // bs
     opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
 
     # The optimiser works on one flat parameter vector: Adam's update and the L2 term are then
@@ -143,30 +275,18 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
         batch = jax.tree_util.tree_map(lambda a: a[idx], train)
         (total, (value, aux)), grads = grad_fn(net, batch, k)
         updates, opt_state = opt.update(grads, opt_state, net)
-        # The step's scalars leave the loop as one vector: one write per step, not one per scalar.
-        stats, treedef = jax.tree_util.tree_flatten((total, value, aux))
+        stats, treedef = _stats(total, value, aux)
         stats_def.append(treedef)
-        return (optax.apply_updates(net, updates), opt_state), jnp.stack(stats)
+        return (optax.apply_updates(net, updates), opt_state), stats
 
-    def epoch(carry, k):
-        k_perm, k_loss = jax.random.split(k)
-        idx = jax.random.permutation(k_perm, B)[: nb * bs].reshape(nb, bs)
+    def epoch(carry, keys):
+        k_perm, k_loss = keys
+        idx = _minibatches(k_perm, B, nb, bs)
         carry, stats = lax.scan(batch_step, carry, (idx, jax.random.split(k_loss, nb)),
                                 unroll=min(cfg.unroll, nb))
-        means = jax.tree_util.tree_unflatten(stats_def[-1], list(jnp.mean(stats, axis=0)))
-        return carry, means
+        return carry, jnp.mean(stats, axis=0)
 
     # Fresh optimiser state at every S-step (the authors' practice); parameters are warm-started.
     carry = (flat0, opt.init(flat0))
-    (flat, _), (loss, data_loss, aux) = lax.scan(epoch, carry, jax.random.split(key, cfg.epochs))
-    net = unravel(flat)
-
-    params = policy.finalize(params._replace(net=net), data._replace(wt=wn))
-    metrics = {
-        "loss": loss,
-        "data_loss": data_loss,
-        "aux": aux,
-        "weights_ok": jnp.sum(data.wt) > 0,
-        "finite": jnp.all(jnp.isfinite(loss)) & _all_finite(params),
-    }
-    return params, metrics
+    (flat, _), means = lax.scan(epoch, carry, _epoch_keys(key, cfg))
+    return unravel(flat), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))

@@ -11,8 +11,8 @@ from scipy.stats import multivariate_normal
 from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
 
 from gmr_jax.config import DynamicsConfig
-from gmr_jax.dynamics import (dynamics_ok, dynamics_prior_empty, fit_dynamics, gauss_fit_joint_prior,
-                              prior_initial_state, ring_insert, update_dynamics_prior)
+from gmr_jax.dynamics import (dynamics_ok, dynamics_prior_empty, fit_dynamics, prior_initial_state, update_dynamics_prior)
+from gmr_jax.prior import gauss_fit_joint_prior, ring_insert
 
 dX, dU, T = 3, 2, 12
 CFG = DynamicsConfig(max_samples=6, max_clusters=4, min_samples_per_cluster=40, strength=1.0)

@@ -407,8 +407,10 @@ def test_controller_term_is_expected_gaussian_kl():
     assert controller(mu, 0 * Sig) < kl_all.mean() - 10 * stderr
 
 
-def test_sstep_fits_linear_gaussian_teacher():
-    """A short S-step drives the controller KL (training loss) and the test-time action error down."""
+@pytest.mark.parametrize("impl", ["reference", "packed"])
+def test_sstep_fits_linear_gaussian_teacher(impl):
+    """A short S-step drives the controller KL (training loss) and the test-time action error down
+    (in both forms of the S-step)."""
     F = _fns(CFG)
     Kp, kp, P, mu, Sig = _teacher(21, 1)
     rng = np.random.default_rng(22)
@@ -426,8 +428,8 @@ def test_sstep_fits_linear_gaussian_teacher():
         du = np.asarray(F.mean(p, data.x)) - np.asarray(data.tgt_mu)
         return 0.5 * np.mean(np.einsum("bi,ij,bj->b", du, P, du))
 
-    params, metrics = jax.jit(sstep, static_argnums=(0, 4))(make_gmr(CFG).policy, params0, data,
-                                                            jax.random.key(23), SStepConfig(epochs=60))
+    params, metrics = jax.jit(sstep, static_argnums=(0, 4), static_argnames="impl")(
+        make_gmr(CFG).policy, params0, data, jax.random.key(23), SStepConfig(epochs=60), impl=impl)
     assert bool(metrics["finite"])
     before, after = controller_kl(params0), controller_kl(params)
     e0, e1 = test_time_action_error(params0), test_time_action_error(params)

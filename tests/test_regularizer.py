@@ -14,7 +14,8 @@ import test_linearize as tl
 from tolerances import EPS, SAFETY, assert_trees_within, measured_tol
 
 from gmr_jax.config import DynamicsConfig, PolicyPriorConfig
-from gmr_jax.dynamics import dynamics_ok, dynamics_prior_empty, regularizer_matrix
+from gmr_jax.dynamics import dynamics_ok, dynamics_prior_empty
+from gmr_jax.prior import regularizer_matrix
 from gmr_jax.linearize import policy_prior_empty
 
 

@@ -1,24 +1,31 @@
 """The S-step: weight rule, input normalisation, objective, fit of a linear-Gaussian teacher,
-closed-form variance, jit/vmap consistency and dtypes."""
+closed-form variance, jit/vmap consistency and dtypes; the packed form against the reference
+form (same minibatches, noise and loss; equal to round-off), Adam against optax, packing."""
 
 import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
+from jax.flatten_util import ravel_pytree
 
 from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
 
-from gmr_jax.config import MLPConfig, SStepConfig
-from gmr_jax.policies import make_policy, make_sstep_data
-from gmr_jax.sstep import normalize_weights, set_normalization, sstep
+from gmr_jax.config import GMRConfig, MLPConfig, SStepConfig
+from gmr_jax.policies import Policy, make_policy, make_sstep_data
+from gmr_jax.policies.base import target_logdet
+from gmr_jax.sstep import (adam_corrections, adam_update, default_impl, normalize_weights,
+                           set_normalization, sstep)
 
 dX, dU, B = 4, 2, 100
 X_SCALE = np.array([0.1, 1.0, 3.0, 10.0])
 X_SHIFT = np.array([1.0, -2.0, 0.0, 5.0])
+IMPLS = ("reference", "packed")
 
-_sstep = jax.jit(sstep, static_argnums=(0, 4))  # one compiled function per (policy, cfg, shapes)
+# one compiled function per (policy, cfg, impl, shapes)
+_sstep = jax.jit(sstep, static_argnums=(0, 4), static_argnames="impl")
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +106,8 @@ def test_set_normalization_fixed_after_first_call(policy):
     np.testing.assert_allclose(p3.norm.scale, 1.0 / np.asarray(data.x)[:50].std(axis=0), rtol=rel)
 
 
-def test_objective_equals_numpy_and_nan_flag(policy):
+@pytest.mark.parametrize("impl", IMPLS)
+def test_objective_equals_numpy_and_nan_flag(policy, impl):
     """With a vanishing learning rate the epoch-0 objective is the full-data objective."""
     rng = np.random.default_rng(2)
     wt = rng.uniform(0.5, 1.5, B)
@@ -107,7 +115,7 @@ def test_objective_equals_numpy_and_nan_flag(policy):
     data, _ = _teacher(2, wt=wt)
     params = policy.init(jax.random.key(1), dX, dU)
     cfg = SStepConfig(epochs=1, batch_size=20, lr=1e-30, weight_decay=2e-4)
-    new, metrics = _sstep(policy, params, data, jax.random.key(3), cfg)
+    new, metrics = _sstep(policy, params, data, jax.random.key(3), cfg, impl=impl)
 
     w = _np_weights(wt)
 
@@ -135,7 +143,7 @@ def test_objective_equals_numpy_and_nan_flag(policy):
     assert_close(new.var, 1.0 / np.diag(A), 2 * linear_tol(1.0, 2 * (B + 2)))
 
     bad = data._replace(tgt_mu=data.tgt_mu.at[5, 0].set(jnp.nan))
-    _, bad_metrics = _sstep(policy, params, bad, jax.random.key(3), cfg)
+    _, bad_metrics = _sstep(policy, params, bad, jax.random.key(3), cfg, impl=impl)
     assert not bool(bad_metrics["finite"])
 
 
@@ -161,7 +169,8 @@ def test_fits_linear_gaussian_teacher(policy):
     np.testing.assert_array_equal(again.norm.bias, new.norm.bias)
 
 
-def test_jit_equals_nojit_and_vmap_equals_loop(policy):
+@pytest.mark.parametrize("impl", IMPLS)
+def test_jit_equals_nojit_and_vmap_equals_loop(policy, impl):
     data, _ = _teacher(3)
     cfg = SStepConfig(epochs=3, batch_size=20)
     keys = jax.random.split(jax.random.key(7), 3)
@@ -171,15 +180,16 @@ def test_jit_equals_nojit_and_vmap_equals_loop(policy):
     # parameters and data perturbed by ε relative shows how far the rounding differences of
     # another program (eager, vmapped) travel through the Adam steps; SAFETY times that spread.
     def single(i):
-        return measured_tol(lambda p, d: _sstep(policy, p, d, keys[i], cfg), (inits[i], data), SAFETY)
+        return measured_tol(lambda p, d: _sstep(policy, p, d, keys[i], cfg, impl=impl), (inits[i], data),
+                            SAFETY)
 
-    eager = sstep(policy, inits[0], data, keys[0], cfg)
+    eager = sstep(policy, inits[0], data, keys[0], cfg, impl=impl)
     jitted, tol = single(0)
     assert_tolerances_small(jitted, tol, 1e-6)
     assert_trees_within(eager, jitted, tol)
 
     batched_params = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *inits)
-    run = jax.jit(jax.vmap(functools.partial(sstep, policy, data=data, cfg=cfg)))
+    run = jax.jit(jax.vmap(functools.partial(sstep, policy, data=data, cfg=cfg, impl=impl)))
     vp, vm = run(batched_params, key=keys)
     for i in range(3):
         ref, tol = single(i)
@@ -189,28 +199,32 @@ def test_jit_equals_nojit_and_vmap_equals_loop(policy):
     assert not np.allclose(w0[0], w0[1])
 
 
-def test_unrolled_loop_takes_the_same_steps(policy):
+@pytest.mark.parametrize("impl", IMPLS)
+def test_unrolled_loop_takes_the_same_steps(policy, impl):
     """``SStepConfig.unroll`` only changes how the loop is compiled: the same minibatch steps in
-    the same order (B = 100 rows: 5 minibatches per epoch, so unroll 3 also leaves a remainder)."""
+    the same order (B = 100 rows: 5 minibatches per epoch, so unroll 3 also leaves a remainder;
+    the packed form's iterations also straddle epochs)."""
     data, _ = _teacher(5)
     params = policy.init(jax.random.key(1), dX, dU)
     # Unrolling lets XLA fuse (and so round) across steps differently: tolerance from the
     # computation, as in test_jit_equals_nojit_and_vmap_equals_loop.
     cfg1 = SStepConfig(epochs=4, unroll=1)
-    ref, tol = measured_tol(lambda p, d: _sstep(policy, p, d, jax.random.key(2), cfg1), (params, data), SAFETY)
+    ref, tol = measured_tol(lambda p, d: _sstep(policy, p, d, jax.random.key(2), cfg1, impl=impl),
+                            (params, data), SAFETY)
     assert_tolerances_small(ref, tol, 1e-6)
     for unroll in (3, 5):
-        got = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=unroll))
+        got = _sstep(policy, params, data, jax.random.key(2), SStepConfig(epochs=4, unroll=unroll), impl=impl)
         assert_trees_within(got, ref, tol)
     with pytest.raises(ValueError, match="sstep.unroll"):
         SStepConfig(unroll=0)
 
 
-def test_float32_follows_input_dtype(policy):
+@pytest.mark.parametrize("impl", IMPLS)
+def test_float32_follows_input_dtype(policy, impl):
     data, _ = _teacher(4)
     data32 = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), data)
     params = policy.init(jax.random.key(0), dX, dU, dtype=jnp.float32)
-    new, metrics = _sstep(policy, params, data32, jax.random.key(0), SStepConfig(epochs=2))
+    new, metrics = _sstep(policy, params, data32, jax.random.key(0), SStepConfig(epochs=2), impl=impl)
     dtypes = {leaf.dtype for leaf in jax.tree_util.tree_leaves(new)}
     assert dtypes == {jnp.dtype(jnp.float32), jnp.dtype(bool)}
     assert metrics["loss"].dtype == jnp.float32 and bool(metrics["finite"])
@@ -223,3 +237,207 @@ def test_too_few_rows_and_bad_config(policy):
         sstep(policy, params, data, jax.random.key(0), SStepConfig(batch_size=20))
     with pytest.raises(ValueError, match="sstep.epochs"):
         SStepConfig(epochs=0)
+
+
+# ------------------------------------------------ the packed form against the reference form
+
+EPS = {jnp.dtype(jnp.float64): np.finfo(np.float64).eps, jnp.dtype(jnp.float32): np.finfo(np.float32).eps}
+GMR_SMALL = GMRConfig(latent=2, encoder_hidden=(16, 16), decoder_hidden=(16, 16), translation_hidden=(16, 16))
+# name: (policy, configuration, the data's non-symmetric matrix in the gradient test)
+POLICY_CFGS = {
+    "mlp": ("mlp", MLPConfig(hidden=(32, 32)), "P"),
+    "gmr": ("gmr", GMR_SMALL, "P"),
+    "gmr_raw": ("gmr", GMRConfig(latent=2, encoder_hidden=(16,), decoder_hidden=(16,), translation_hidden=(16,),
+                                 head_coordinates="raw"), "S"),
+    # decoder and translation network of different depths: one after the other, not side by side
+    "gmr_uneven": ("gmr", GMRConfig(latent=3, encoder_hidden=(16,), decoder_hidden=(8,), translation_hidden=(16, 12)),
+                   None),
+}
+
+
+def _n_path(cfg, bs: int) -> int:
+    """The summed lengths of the sums on the longest chain of one minibatch step: the layers'
+    fan-ins (+1, the bias) forward and backward, the loss's per-row sums (GMR: the head's two
+    products of 1 + dX and 1 + dX + dU terms and the gain's dU·dX terms), the batch mean and the
+    weight gradient's sum over the batch.
+
+    Two orders of a sum of n terms differ by at most 2·γ_n·Σ|terms| (γ_n = nε/(1 − nε)), and
+    the errors of successive sums add up to first order, so n_path·ε bounds the relative
+    difference of two evaluations that sum in different orders, for values that are not the
+    result of a cancellation (the test data keep every term of the loss of the order of the
+    loss, and gradients of the order of their largest entry).
+    """
+    if cfg.__class__ is MLPConfig:
+        fan_ins, loss_sums = (dX,) + cfg.hidden, dU * dU
+    else:
+        deepest = max(cfg.decoder_hidden, cfg.translation_hidden, key=len)
+        fan_ins = (dX,) + cfg.encoder_hidden + (cfg.latent,) + deepest
+        loss_sums = (1 + dX) + (1 + dX + dU) + dU * dX
+    return 2 * sum(f + 1 for f in fan_ins) + loss_sums + 2 * bs
+
+
+def _full_data(seed, n=B, skew=None):
+    """A data set with every field (GMR's gains and state covariances too), weights around 1
+    with one padding row; ``skew`` "P" or "S" adds a small skew-symmetric part to the precisions
+    or to the state covariances (the loss sees only the symmetric part of one while the other is
+    symmetric)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, dX)) * X_SCALE + X_SHIFT
+    K = rng.normal(size=(n, dU, dX)) / X_SCALE
+    k = rng.normal(size=(n, dU))
+    A = rng.normal(size=(n, dU, dU))
+    P = A @ np.swapaxes(A, -1, -2) / dU + np.eye(dU)
+    C = rng.normal(size=(n, dX, dX)) * X_SCALE[:, None]  # state covariances of the states' scale
+    S = 0.3 * C @ np.swapaxes(C, -1, -2) / dX + 1e-3 * np.eye(dX)
+    E = rng.normal(size=(n, dX, dX))
+    if skew == "P":
+        P = P + 1e-2 * (E[:, :dU, :dU] - np.swapaxes(E[:, :dU, :dU], -1, -2))
+    elif skew == "S":
+        S = S + 1e-2 * np.max(S) * (E - np.swapaxes(E, -1, -2))
+    tgt = np.einsum("bux,bx->bu", K, x) + k + 0.3 * rng.normal(size=(n, dU))
+    w = rng.uniform(0.5, 1.5, n)
+    w[3] = 0.0
+    return make_sstep_data(x, tgt, P, wt=w, K=K, k=k, state_cov=S)
+
+
+def _policy(name):
+    kind, cfg, _ = POLICY_CFGS[name]
+    return make_policy(kind, cfg), cfg
+
+
+def _train_batch(pol, data, rows=20, key=0):
+    """What the S-step hands the loss: params with the normalisation set, and the first ``rows``
+    rows with the normalised weight folded into the precision."""
+    wn = normalize_weights(data.wt)
+    params = set_normalization(pol.init(jax.random.key(key), dX, dU), data.x, wn)
+    train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn,
+                          tgt_logdet=target_logdet(data.tgt_prc, wn))
+    return params, jax.tree_util.tree_map(lambda a: a[:rows], train)
+
+
+@pytest.mark.parametrize("name", list(POLICY_CFGS))
+def test_training_form_gradient_equals_autodiff(name):
+    """One minibatch: the packed form's value, aux and gradient against autodiff of
+    ``policy.loss`` through the Flax weights, within n_path·ε; padding gets an exact zero."""
+    pol, cfg = _policy(name)
+    params, batch = _train_batch(pol, _full_data(11, skew=POLICY_CFGS[name][2]))
+    form, key = pol.training, jax.random.key(4)
+    flat, unravel = ravel_pytree(params.net)
+    (v_ref, aux_ref), g_ref = jax.jit(jax.value_and_grad(
+        lambda f: pol.loss(params._replace(net=unravel(f)), batch, key), has_aux=True))(flat)
+    theta = form.pack(params)
+    noise = form.noise(key, 20, theta.dtype) if form.noise is not None else None
+    (value, aux), grad = jax.jit(form.value_and_grad)(params, theta, form.rows(params, batch), noise)
+
+    tol = _n_path(cfg, 20) * EPS[theta.dtype]
+    assert abs(value - v_ref) <= tol * abs(v_ref), (value, v_ref)
+    assert aux.keys() == aux_ref.keys()
+    for k in aux:
+        assert abs(aux[k] - aux_ref[k]) <= tol * abs(v_ref), (k, aux[k], aux_ref[k])
+    g_packed = np.asarray(form.pack(params._replace(net=unravel(g_ref))))
+    assert np.max(np.abs(np.asarray(grad) - g_packed)) <= tol * np.max(np.abs(g_packed))
+    padding = np.asarray(form.pack(params._replace(net=jax.tree_util.tree_map(jnp.ones_like, params.net)))) == 0
+    assert padding.any() and np.all(np.asarray(grad)[padding] == 0.0)
+
+
+@pytest.mark.parametrize("name", ["mlp", "gmr"])
+def test_packed_sstep_equals_reference(name):
+    """The whole S-step: the same minibatches, noise, loss and Adam steps, so the two forms agree
+    to round-off. Bound: a relative change δ = n_path·ε of a gradient changes an Adam step,
+    lr·m̂/(√v̂ + eps) with |m̂|/√v̂ ≤ (1 − b1)/√(1 − b2) < 3.2, by at most 2δ·3.2·lr < 8δ·lr, so
+    after S steps the weights differ by at most 8δ·lr·S (to first order: over a few steps the
+    weights' difference feeds back into the gradients far below δ)."""
+    pol, cfg = _policy(name)
+    data = _full_data(12)
+    params = pol.init(jax.random.key(2), dX, dU)
+    scfg = SStepConfig(epochs=3, batch_size=20, unroll=2)
+    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="reference")
+    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
+    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float64)]
+    steps = scfg.epochs * (B // scfg.batch_size)
+    assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(ref)
+    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    # the metrics: epoch means of the step's losses, within δ of the loss (and the weights' drift)
+    for a, b in zip(jax.tree_util.tree_leaves(new_m), jax.tree_util.tree_leaves(ref_m)):
+        np.testing.assert_allclose(a, b, rtol=2 * delta, atol=2 * delta * float(ref_m["loss"][0]))
+    # the weights moved: the comparison is not of two untrained networks
+    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+
+
+def test_packed_sstep_equals_reference_float32():
+    """As above in float32 (ε = 1.2e-7), for GMR."""
+    pol, cfg = _policy("gmr")
+    data = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), _full_data(13))
+    params = pol.init(jax.random.key(2), dX, dU, jnp.float32)
+    scfg = SStepConfig(epochs=2, batch_size=20)
+    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="reference")
+    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
+    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float32)]
+    steps = scfg.epochs * (B // scfg.batch_size)
+    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
+        assert a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
+
+
+def test_adam_update_equals_optax():
+    """The S-step's Adam is optax.adam operation for operation: bit for bit, float64 and float32."""
+    cfg = SStepConfig()
+    rng = np.random.default_rng(0)
+    for dtype in (jnp.float64, jnp.float32):
+        theta = jnp.asarray(rng.normal(size=300), dtype)
+        grads = jnp.asarray(rng.normal(size=(12, 300)) * np.logspace(-12, 2, 300), dtype)
+        opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
+
+        @jax.jit
+        def both(theta, grads):
+            c1, c2 = adam_corrections(cfg, len(grads), theta.dtype)
+            ref, state = theta, opt.init(theta)
+            new, mu, nu = theta, jnp.zeros_like(theta), jnp.zeros_like(theta)
+            for t, g in enumerate(grads):
+                updates, state = opt.update(g, state, ref)
+                ref = optax.apply_updates(ref, updates)
+                new, mu, nu = adam_update(cfg, new, mu, nu, g, c1[t], c2[t])
+            return ref, new
+
+        ref, new = both(theta, grads)
+        assert new.dtype == dtype
+        np.testing.assert_array_equal(new, ref)
+
+
+@pytest.mark.parametrize("name", list(POLICY_CFGS))
+def test_packing_keeps_the_initial_weights(name):
+    """pack/unpack: the Flax initialisation comes back bit for bit (same tree, dtypes), and the
+    packed vector holds every weight once, the rest zeros."""
+    pol, _ = _policy(name)
+    for dtype in (jnp.float64, jnp.float32):
+        params = pol.init(jax.random.key(7), dX, dU, dtype)
+        theta = pol.training.pack(params)
+        assert theta.dtype == dtype and theta.ndim == 1
+        back = pol.training.unpack(params, theta)
+        assert jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(params.net)
+        for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(params.net)):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+        ones = pol.training.pack(params._replace(net=jax.tree_util.tree_map(jnp.ones_like, params.net)))
+        assert float(jnp.sum(ones)) == sum(a.size for a in jax.tree_util.tree_leaves(params.net))
+        assert np.sum(np.abs(np.asarray(theta))) == pytest.approx(
+            sum(float(jnp.sum(jnp.abs(a))) for a in jax.tree_util.tree_leaves(params.net)), rel=1e-6)
+
+
+def test_impl_choice_and_fallback(policy):
+    """The CPU defaults to the reference form; a policy without a TrainingForm runs the
+    reference form under impl="packed"; an unknown impl is refused."""
+    assert default_impl() == ("reference" if jax.default_backend() == "cpu" else "packed")
+    data, _ = _teacher(6)
+    params = policy.init(jax.random.key(0), dX, dU)
+    cfg = SStepConfig(epochs=2)
+    bare = Policy(*policy[:5])
+    assert bare.training is None
+    ref = _sstep(policy, params, data, jax.random.key(1), cfg, impl="reference")
+    got = _sstep(bare, params, data, jax.random.key(1), cfg, impl="packed")
+    for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(got)):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="impl"):
+        sstep(policy, params, data, jax.random.key(1), cfg, impl="fast")

@@ -23,6 +23,10 @@ Contract for a policy implementation:
 - ``finalize(params, data: SStepData) -> params``: runs after the optimisation on the *whole*
   data set, with ``tgt_prc`` unweighted and ``wt`` the normalised weights (e.g. the MLP's
   closed-form variance rule).
+- ``training`` (optional): a :class:`TrainingForm`, the same data term in the form the S-step's
+  loop runs fastest (one flat weight vector, one matrix of per-datum constants, the random
+  numbers drawn before the loop, the weight gradients of all layers as one batched product).
+  Without it the S-step differentiates ``loss`` through ``params.net``.
 
 The S-step optimises ``params.net`` only; ``params.norm`` and ``params.var`` are never touched by
 the optimiser. A policy that needs more non-trained state may put any pytree in ``var``.
@@ -35,6 +39,7 @@ configuration gives the same object and reuses compiled code) or close over it.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -102,6 +107,37 @@ class SStepData(NamedTuple):
     tgt_logdet: Array | None = None
 
 
+class TrainingForm(NamedTuple):
+    """A policy's S-step data term in the form that needs the fewest kernels per Adam step.
+
+    On a GPU the S-step's minibatch steps are bound by kernel launches, not arithmetic, so this
+    form trades memory and padding for fewer operations: the trained weights are one flat vector θ
+    in a layout of the policy's choice, the per-datum constants of the loss are the rows of one
+    matrix (a minibatch is one gather), the random numbers of every minibatch are drawn before the
+    loop, and ``value_and_grad`` may compute the gradient any way it likes (e.g. all layers' weight
+    gradients as one batched product, see :func:`dense_value_and_grad`). It must give ``loss``'s
+    value, aux and gradient for the same minibatch and key, up to round-off.
+
+    Attributes:
+      pack: (params) -> θ [n], ``params.net`` in the form's layout. Entries that no output depends
+        on (padding) must be 0 and get a zero gradient, so Adam leaves them at 0.
+      unpack: (params, θ [n]) -> net, the inverse of ``pack`` (``params.net``'s pytree).
+      rows: (params, data: SStepData) -> [B, F], the per-datum constants of ``data`` as the loss
+        sees it (``tgt_prc`` = w·P, ``wt`` = w); computed once per S-step.
+      noise: (key, n, dtype) -> [n, ...], the random numbers ``loss`` draws from ``key`` for a
+        minibatch of n rows (None: the loss is deterministic).
+      value_and_grad: (params, θ [n], rows [b, F], noise [b, ...] or None) -> ((value, aux),
+        grad [n]), the data term of a minibatch of b rows (``loss``'s value and aux dict) and its
+        gradient with respect to θ.
+    """
+
+    pack: Callable[[PolicyParams], Array]
+    unpack: Callable[[PolicyParams, Array], PyTree]
+    rows: Callable[[PolicyParams, SStepData], Array]
+    noise: Callable[..., Array] | None
+    value_and_grad: Callable[..., tuple[tuple[Array, dict], Array]]
+
+
 class Policy(NamedTuple):
     """A global policy as a bundle of pure functions (see the module docstring for the contract).
 
@@ -111,6 +147,8 @@ class Policy(NamedTuple):
       covariance: (params, x [dX]) -> [dU, dU], exploration covariance.
       loss: (params, batch: SStepData, key) -> (scalar, dict of scalars), data term of the S-step.
       finalize: (params, data: SStepData) -> params, after the S-step's optimisation.
+      training: optional :class:`TrainingForm` of ``loss`` for the S-step (None: autodiff of
+        ``loss``).
     """
 
     init: Callable[..., PolicyParams]
@@ -118,6 +156,7 @@ class Policy(NamedTuple):
     covariance: Callable[[PolicyParams, Array], Array]
     loss: Callable[[PolicyParams, SStepData, Array], tuple[Array, dict]]
     finalize: Callable[[PolicyParams, SStepData], PolicyParams]
+    training: TrainingForm | None = None
 
 
 def default_float():
@@ -189,6 +228,31 @@ def weighted_action_error(u: Array, tgt_mu: Array, tgt_prc: Array) -> Array:
     return 0.5 * jnp.mean(jnp.einsum("bi,bij,bj->b", d, tgt_prc, d))
 
 
+def symmetrize(A: Array) -> Array:
+    """½(A + Aᵀ) over the last two axes (A itself, bit for bit, if A is symmetric)."""
+    return 0.5 * (A + jnp.swapaxes(A, -1, -2))
+
+
+def _quadratic_rows_fwd(d, P):
+    Pd = jnp.einsum("bij,bj->bi", P, d)
+    return jnp.sum(d * Pd, axis=-1), Pd
+
+
+def _quadratic_rows_bwd(Pd, ct):
+    return (2.0 * ct)[..., None] * Pd, None
+
+
+@jax.custom_vjp
+def quadratic_rows(d: Array, P: Array) -> Array:
+    """dᵀ P d per row: d [b, n], P [b, n, n] symmetric -> [b], with its gradient 2·P d in closed
+    form (one product for value and gradient; autodiff of the einsum forms three). P is treated
+    as a constant."""
+    return _quadratic_rows_fwd(d, P)[0]
+
+
+quadratic_rows.defvjp(_quadratic_rows_fwd, _quadratic_rows_bwd)
+
+
 def noisy_action(policy: Policy, params: PolicyParams, x: Array, noise: Array) -> Array:
     """u = mean(x) + L·ε with L Lᵀ = covariance(x): x [dX], noise ε [dU] (standard normal) -> [dU].
 
@@ -197,3 +261,163 @@ def noisy_action(policy: Policy, params: PolicyParams, x: Array, noise: Array) -
     cov = policy.covariance(params, x)
     chol = linalg.cholesky(cov)
     return policy.mean(params, x) + chol @ noise
+
+
+# ------------------------------------------------------------------ the S-step's packed layouts
+#
+# The S-step's Adam step runs one kernel per operation on a GPU and nearly every operation is
+# tiny, so the layout below serves one purpose: few operations per step. All dense layers of a
+# policy live in one zero-padded array, networks of equal depth that read the same input run as
+# one batched product per layer, and the weight gradients of all layers come out of a single
+# batched product (``dense_value_and_grad``) instead of one product per layer.
+
+
+class DenseLayout(NamedTuple):
+    """Dense layers ("slots") of one or several networks stored in one array W [S, I+1, O].
+
+    Slot s holds a layer of fan-in a and fan-out b: W[s, :a, :b] is its kernel, W[s, I, :b] its
+    bias and every other entry is 0. The padding changes no output: padded inputs are 0, padded
+    outputs are cut off or feed zero weights, and a padded hidden unit has a zero
+    pre-activation, so its activation act(0) = 0 (true of every activation used here). For the
+    same reasons every padded entry has a zero gradient.
+
+    Attributes:
+      shapes: ((fan_in, fan_out), …), one pair per slot.
+      width_in: I, the largest fan-in.
+      width_out: O, the largest fan-out.
+    """
+
+    shapes: tuple[tuple[int, int], ...]
+    width_in: int
+    width_out: int
+
+    @property
+    def array_shape(self) -> tuple[int, int, int]:
+        """The shape of W: (S, I+1, O)."""
+        return (len(self.shapes), self.width_in + 1, self.width_out)
+
+
+def dense_layout(shapes) -> DenseLayout:
+    """The :class:`DenseLayout` of slots with the given ((fan_in, fan_out), …)."""
+    shapes = tuple((int(a), int(b)) for a, b in shapes)
+    return DenseLayout(shapes, max(a for a, _ in shapes), max(b for _, b in shapes))
+
+
+def dense_chain(d_in: int, hidden, d_out: int) -> list[tuple[int, int]]:
+    """The (fan_in, fan_out) of each layer of a network d_in → hidden… → d_out."""
+    widths = (d_in,) + tuple(hidden) + (d_out,)
+    return list(zip(widths[:-1], widths[1:]))
+
+
+def flax_dense_layers(net: dict, count: int) -> list[tuple[Array, Array]]:
+    """[(kernel, bias)] of the Flax layers Dense_0 … Dense_{count-1} of ``net``."""
+    return [(net[f"Dense_{i}"]["kernel"], net[f"Dense_{i}"]["bias"]) for i in range(count)]
+
+
+def flax_dense_params(layers) -> dict:
+    """[(kernel, bias)] -> {"Dense_i": {"kernel", "bias"}}, the inverse of ``flax_dense_layers``."""
+    return {f"Dense_{i}": {"kernel": k, "bias": b} for i, (k, b) in enumerate(layers)}
+
+
+def pack_dense(layout: DenseLayout, layers) -> Array:
+    """[(kernel [a, b], bias [b]) per slot] -> W [S, I+1, O] (zero padding)."""
+    I, O = layout.width_in, layout.width_out
+    blocks = []
+    for (a, b), (kernel, bias) in zip(layout.shapes, layers, strict=True):
+        assert kernel.shape == (a, b) and bias.shape == (b,), (kernel.shape, bias.shape, (a, b))
+        rows = jnp.concatenate([kernel, jnp.zeros((I - a, b), kernel.dtype), bias[None]], axis=0)
+        blocks.append(jnp.pad(rows, ((0, 0), (0, O - b))))
+    return jnp.stack(blocks)
+
+
+def unpack_dense(layout: DenseLayout, W: Array) -> list[tuple[Array, Array]]:
+    """W [S, I+1, O] -> [(kernel [a, b], bias [b]) per slot], the inverse of ``pack_dense``."""
+    I = layout.width_in
+    return [(W[s, :a, :b], W[s, I, :b]) for s, (a, b) in enumerate(layout.shapes)]
+
+
+def fit_width(h: Array, width: int) -> Array:
+    """h [..., d] -> [..., width]: cut off or zero-padded on the last axis."""
+    d = h.shape[-1]
+    if d >= width:
+        return h[..., :width]
+    return jnp.pad(h, [(0, 0)] * (h.ndim - 1) + [(0, width - d)])
+
+
+def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x: Array,
+                act: Callable, deltas: Array):
+    """n networks of equal depth side by side on the same input, one batched product per layer.
+
+    Layer l of network k is slot ``first + l·n + k`` of W [S, I+1, O] (``layout``); ``deltas``
+    [S, b, O] is added to every pre-activation (zeros: it is the point at which
+    ``dense_value_and_grad`` differentiates). Each layer multiplies by the part of its kernels
+    that can be nonzero (the widest fan-in and fan-out among its n slots), so that no activation
+    has to be padded or cut inside the network.
+
+    Args:
+      x: [b, a] the input, a the first layer's widest fan-in.
+      act: the hidden activation (act(0) = 0).
+    Returns:
+      (out [n, b, o], the last layer's pre-activations, o its widest fan-out (columns beyond a
+       network's own fan-out are 0); inputs [depth·n, b, I], every layer's input in slot order,
+       zero-padded to I).
+    """
+    I = layout.width_in
+    h = x
+    inputs = []
+    for layer in range(depth):
+        s = first + layer * n
+        a = max(fan_in for fan_in, _ in layout.shapes[s: s + n])
+        o = max(fan_out for _, fan_out in layout.shapes[s: s + n])
+        if h.shape[-1] != a:
+            raise ValueError(f"slot {s}: input of width {h.shape[-1]}, expected {a}")
+        kernel = W[s: s + n, :a, :o]
+        if layer == 0:
+            # the shared input is not copied n times: the product's gradient with respect to x
+            # then contracts over the n networks too, with no separate sum
+            inputs.append(jnp.broadcast_to(fit_width(x, I), (n,) + x.shape[:-1] + (I,)))
+            product = jnp.einsum("ba,nao->nbo", x, kernel)
+        else:
+            inputs.append(fit_width(h, I))
+            product = jnp.matmul(h, kernel)
+        pre = product + W[s: s + n, I:, :o] + deltas[s: s + n, :, :o]
+        if layer == depth - 1:
+            return pre, jnp.concatenate(inputs, axis=0)
+        h = act(pre)
+
+
+def dense_value_and_grad(f: Callable, W: Array, batch: int):
+    """Value and gradient with respect to W [S, I+1, O] of a loss that reads W only through
+    ``dense_stack`` pre-activations.
+
+    ``f(deltas [S, batch, O]) -> (value, (aux, inputs [S, batch, I]))`` evaluates the loss with
+    ``deltas`` added to the pre-activations and returns every slot's input. Autodiff with
+    respect to ``deltas`` at 0 gives each slot's pre-activation gradient D_s [batch, O], and then
+    ∂value/∂W_s = [inputs_s, 1]ᵀ D_s for all slots in one batched product (the ones column gives
+    the bias row). These are the products autodiff with respect to W would form one layer at a
+    time, so the result agrees with it to round-off.
+
+    Returns: ((value, aux), grad [S, I+1, O]).
+    """
+    S, _, O = W.shape
+    (value, (aux, inputs)), D = jax.value_and_grad(f, has_aux=True)(jnp.zeros((S, batch, O), W.dtype))
+    ones = jnp.ones(inputs.shape[:-1] + (1,), inputs.dtype)
+    grad = jnp.einsum("sbi,sbo->sio", jnp.concatenate([inputs, ones], axis=-1), D)
+    return (value, aux), grad
+
+
+def pack_rows(fields: NamedTuple) -> Array:
+    """A NamedTuple of per-datum arrays [B, ...] -> one matrix [B, F] (fields side by side)."""
+    return jnp.concatenate([f.reshape(f.shape[0], -1) for f in fields], axis=1)
+
+
+def unpack_rows(rows: Array, shapes: NamedTuple) -> NamedTuple:
+    """rows [b, F] -> the NamedTuple ``shapes`` (per-row shapes of its fields) of arrays [b, ...],
+    the inverse of ``pack_rows``."""
+    out, start = [], 0
+    for shape in shapes:
+        size = math.prod(shape)
+        out.append(rows[:, start: start + size].reshape((rows.shape[0],) + tuple(shape)))
+        start += size
+    assert start == rows.shape[1], (start, rows.shape)
+    return type(shapes)(*out)

@@ -70,8 +70,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmr_jax.config import GMRConfig
-from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, default_float,
-                                   identity_normalization, normalize_input, target_logdet)
+from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
+                                   default_float, dense_chain, dense_layout, dense_stack,
+                                   dense_value_and_grad, flax_dense_layers, flax_dense_params,
+                                   identity_normalization, normalize_input, pack_dense, pack_rows,
+                                   symmetrize, target_logdet, unpack_dense, unpack_rows)
 from gmr_jax.policies.mlp import closed_form_variance
 
 
@@ -161,6 +164,149 @@ class MotorReflex(NamedTuple):
     logdet: Array
 
 
+class LossRows(NamedTuple):
+    """The per-datum constants of the GMR loss (shapes per row; a batch adds a leading axis).
+
+    Attributes:
+      xn: [dX] the encoder's input x̄ = c·tanh(x̃/c), also the reconstruction target.
+      xh: [dX] the state the head's gain multiplies (x̃, or x for ``head_coordinates="raw"``).
+      tgt_mu: [dU] target action.
+      prc: [dU, dU] weighted target precision w·P.
+      K: [dU, dX] the local controller's gain K_p.
+      state_cov: [dX, dX] Σ_t.
+      wt: [] the normalised weight w.
+      logdet: [] log|P| of the unweighted precision (0 on zero-weight rows).
+    """
+
+    xn: Array
+    xh: Array
+    tgt_mu: Array
+    prc: Array
+    K: Array
+    state_cov: Array
+    wt: Array
+    logdet: Array
+
+
+class FusedRows(NamedTuple):
+    """The per-datum constants of the GMR loss in the S-step's packed form (``fused_head``).
+
+    Attributes:
+      xn: [dX] the encoder's input x̄, also the reconstruction target.
+      xs: [dX, 1 + dX] the head's input x̃ (or x) beside Σ_t: [xh | Σ_t] (Σ_t symmetrised).
+      tgt_mu: [dU] target action.
+      prc: [dU, dU] w·P, symmetrised.
+      K: [dU, dX] the local controller's gain K_p.
+      wt: [] the normalised weight w.
+      logdet: [] log|P| of the unweighted precision.
+
+    The gradients of ``fused_head`` assume symmetric matrices. Symmetrising, ½(A + Aᵀ), changes
+    nothing for a symmetric A (precisions and covariances are symmetric), and the loss's terms
+    see only the symmetric part of P when Σ_t is symmetric, and the other way round.
+    """
+
+    xn: Array
+    xs: Array
+    tgt_mu: Array
+    prc: Array
+    K: Array
+    wt: Array
+    logdet: Array
+
+
+def _fused_head_fwd(init_var, std_range, offdiag_bound, G, g, full, scale, xs, tgt_mu, prc, K):
+    dU, dX = G.shape[-2:]
+    L, logdet, (T, V, row_norm, sigma, t) = _cholesky_parts(full, init_var, std_range, offdiag_bound)
+    dK = G * scale - K
+    # one product gives G x̃ (first column of the top half) and ΔK Σ (the rest of the bottom half)
+    C1 = jnp.matmul(jnp.concatenate([G, dK], axis=-2), xs)
+    du = C1[..., :dU, 0] + g - tgt_mu
+    # one product gives P Δu, P ΔK Σ and P L
+    C2 = jnp.matmul(prc, jnp.concatenate([du[..., None], C1[..., dU:, 1:], L], axis=-1))
+    Pdu, PdKS, PL = C2[..., 0], C2[..., 1: 1 + dX], C2[..., 1 + dX:]
+    action = jnp.sum(du * Pdu, axis=-1)
+    gain = jnp.sum(dK * PdKS, axis=(-2, -1))
+    tr_rows = jnp.sum(L * PL, axis=-1)
+    out = (action, gain, jnp.sum(tr_rows, axis=-1), logdet, du)
+    return out, (Pdu, PdKS, PL, tr_rows, xs[..., 0], scale, T, V, row_norm, sigma, t)
+
+
+def _fused_head_bwd(init_var, std_range, offdiag_bound, res, cts):
+    Pdu, PdKS, PL, tr_rows, xh, scale, T, V, row_norm, sigma, t = res
+    ct_action, ct_gain, ct_tr, ct_logdet, ct_du = cts
+    dU = V.shape[-1]
+    # P and Σ_t symmetric: ∂action/∂Δu = 2 P Δu, ∂gain/∂ΔK = 2 P ΔK Σ, ∂tr/∂L = 2 P L
+    g_du = (2.0 * ct_action)[..., None] * Pdu + ct_du
+    g_G = g_du[..., :, None] * xh[..., None, :] + ((2.0 * ct_gain)[..., None, None] * PdKS) * scale
+    g_L = (2.0 * ct_tr)[..., None, None] * PL
+    # L_ij = σ_i V_ij/n_i, n_i = ‖V_i‖, logdet = 2 Σ_i (log σ_i − log n_i):
+    #   ∂/∂log σ_i = Σ_j g_L,ij L_ij + 2·ct_logdet =: q_i (Σ_j g_L,ij L_ij = 2·ct_tr·tr_rows_i),
+    #   ∂/∂V_ij = (σ_i/n_i)·g_L,ij − q_i·V_ij/n_i²,
+    # then through log σ_i = ½ log(init_var) + s·tanh(r_ii/s) and V_ij = c·tanh(r_ij/c).
+    q = (2.0 * ct_tr)[..., None] * tr_rows + (2.0 * ct_logdet)[..., None]
+    g_V = (sigma / row_norm)[..., :, None] * g_L - (q / jnp.square(row_norm))[..., :, None] * V
+    strict = jnp.tril(jnp.ones((dU, dU), dtype=bool), -1)
+    eye = jnp.eye(dU, dtype=bool)
+    g_full = jnp.where(strict, g_V * (1.0 - jnp.square(T)),
+                       jnp.where(eye, (q * (1.0 - jnp.square(t)))[..., :, None], 0.0))
+    return g_G, g_du, g_full, None, None, None, None, None
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
+def fused_head(init_var: float, std_range: float, offdiag_bound: float, G, g, full, scale, xs, tgt_mu,
+               prc, K):
+    """The controller terms of the GMR loss per row from the packed head, with two batched
+    products and a gradient in closed form (no product and no reduction in the backward pass).
+
+    Args:
+      init_var, std_range, offdiag_bound: the parameters of ``cholesky_factor``.
+      G: [b, dU, dX], g: [b, dU] the head's gain and offset; full: [b, dU, dU] the Cholesky
+        entries r as a lower triangle (``cholesky_from_square``).
+      scale: [dX] Ψ_K = G·diag(scale) (ones for raw head coordinates).
+      xs, tgt_mu, prc, K: the FusedRows fields of the minibatch (prc and Σ_t symmetric).
+    Returns:
+      (action [b] = Δuᵀ P Δu, gain [b] = tr(ΔKᵀ P ΔK Σ_t), tr [b] = tr(P L Lᵀ),
+       logdet [b] = log|L Lᵀ|, Δu [b, dU]) with Δu = G x̃ + g − tgt_mu, ΔK = G·diag(scale) − K_p:
+      ``quadratics`` (the loss's einsums) and ``cholesky_factor`` summed in another order.
+    """
+    return _fused_head_fwd(init_var, std_range, offdiag_bound, G, g, full, scale, xs, tgt_mu, prc, K)[0]
+
+
+fused_head.defvjp(_fused_head_fwd, _fused_head_bwd)
+
+
+def _reparameterize_fwd(h, eps):
+    latent = eps.shape[-1]
+    mu, logvar = h[..., :latent], h[..., latent:]
+    std, var = jnp.exp(0.5 * logvar), jnp.exp(logvar)
+    kl = jnp.sum(jnp.square(mu) + var - logvar - 1.0, axis=-1)
+    return (mu + std * eps, kl), (mu, std, var, eps)
+
+
+def _reparameterize_bwd(res, cts):
+    mu, std, var, eps = res
+    ct_z, ct_kl = cts
+    ct_kl = ct_kl[..., None]
+    g_mu = ct_z + ct_kl * (2.0 * mu)
+    g_logvar = ct_z * eps * (0.5 * std) + ct_kl * (var - 1.0)
+    return jnp.concatenate([g_mu, g_logvar], axis=-1), None
+
+
+@jax.custom_vjp
+def reparameterize(h, eps):
+    """The latent sample and the latent term with their gradient in one elementwise step.
+
+    Args: h [b, 2·latent] the encoder's output (μ_z, log σ²_z); eps [b, latent] the noise.
+    Returns: (z [b, latent] = μ + exp(½ log σ²)·ε, kl [b] = Σ_j (μ_j² + σ_j² − log σ_j² − 1)),
+      computed as ``loss`` computes them; the gradient is autodiff's, written out (one kernel
+      instead of three in the S-step's loop).
+    """
+    return _reparameterize_fwd(h, eps)[0]
+
+
+reparameterize.defvjp(_reparameterize_fwd, _reparameterize_bwd)
+
+
 class GMR(NamedTuple):
     """The GMR policy and its parts, all pure functions of (params, ...) for one configuration.
 
@@ -184,7 +330,8 @@ class GMR(NamedTuple):
 
 
 def _split_head(out: Array, dX: int, dU: int):
-    """Raw head output [..., head_size] -> (G [..., dU, dX], g [..., dU], r [..., dU(dU+1)/2])."""
+    """Raw head output [..., head_size] -> (G [..., dU, dX], g [..., dU], r [..., dU(dU+1)/2])
+    (for the packed head [..., packed_head_size], r holds the square's dU² entries)."""
     nK = dU * dX
     G = out[..., :nK].reshape(out.shape[:-1] + (dU, dX))  # row-major, as the authors' Ψ_K
     return G, out[..., nK: nK + dU], out[..., nK + dU:]
@@ -202,13 +349,53 @@ def cholesky_factor(r: Array, dU: int, init_var: float, std_range: float, offdia
     """
     rows, cols = np.tril_indices(dU)
     full = jnp.zeros(r.shape[:-1] + (dU, dU), r.dtype).at[..., rows, cols].set(r)
+    return cholesky_from_square(full, init_var, std_range, offdiag_bound)
+
+
+def cholesky_from_square(full: Array, init_var: float, std_range: float, offdiag_bound: float):
+    """``cholesky_factor`` with r given as the lower triangle of full [..., dU, dU] (the entries
+    above the diagonal are not read) -> (L [..., dU, dU], log|L Lᵀ| [...])."""
+    L, logdet, _ = _cholesky_parts(full, init_var, std_range, offdiag_bound)
+    return L, logdet
+
+
+def _cholesky_parts(full: Array, init_var: float, std_range: float, offdiag_bound: float):
+    """``cholesky_from_square`` and the intermediate values its gradient needs:
+    (L, logdet, (T [..., dU, dU] = tanh(full/c), V, row_norm [..., dU], σ [..., dU],
+    t [..., dU] = tanh(r_ii/s)))."""
+    dU = full.shape[-1]
     s = math.log(std_range)
-    log_sigma = 0.5 * math.log(init_var) + s * jnp.tanh(jnp.diagonal(full, axis1=-2, axis2=-1) / s)
+    # the diagonal as a strided slice of the flattened square (jnp.diagonal is a gather, one more
+    # kernel in the S-step's loop; a slice fuses into its consumers)
+    t = jnp.tanh(full.reshape(full.shape[:-2] + (dU * dU,))[..., :: dU + 1] / s)
+    log_sigma = 0.5 * math.log(init_var) + s * t
     strict = jnp.tril(jnp.ones((dU, dU), dtype=bool), -1)
-    V = jnp.where(strict, offdiag_bound * jnp.tanh(full / offdiag_bound), 0.0) + jnp.eye(dU, dtype=r.dtype)
+    T = jnp.tanh(full / offdiag_bound)
+    V = jnp.where(strict, offdiag_bound * T, 0.0) + jnp.eye(dU, dtype=full.dtype)
     row_norm = jnp.sqrt(jnp.sum(jnp.square(V), axis=-1))  # ≥ 1: the diagonal of V is 1
-    L = (jnp.exp(log_sigma) / row_norm)[..., :, None] * V
-    return L, 2.0 * jnp.sum(log_sigma - jnp.log(row_norm), axis=-1)
+    sigma = jnp.exp(log_sigma)
+    L = (sigma / row_norm)[..., :, None] * V
+    return L, 2.0 * jnp.sum(log_sigma - jnp.log(row_norm), axis=-1), (T, V, row_norm, sigma, t)
+
+
+def packed_head_size(dX: int, dU: int) -> int:
+    """Outputs of h_trans in the S-step's layout: dU·dX (gain) + dU (offset) + dU² (the Cholesky
+    entries r as the lower triangle of a square, zeros above it)."""
+    return dU * dX + dU + dU * dU
+
+
+def head_columns(dX: int, dU: int) -> np.ndarray:
+    """For each column of the packed head (``packed_head_size``), the column of the head
+    (``head_size``) it holds, or -1 for the always-zero entries above the diagonal.
+
+    The square layout needs no scatter to build the Cholesky factor inside the S-step's loop.
+    """
+    n = dU * dX + dU
+    rows, cols = np.tril_indices(dU)
+    src = np.full(packed_head_size(dX, dU), -1)
+    src[:n] = np.arange(n)
+    src[n + rows * dU + cols] = n + np.arange(len(rows))
+    return src
 
 
 def linearize_mean(mean_fn, params: PolicyParams, x: Array):
@@ -311,46 +498,182 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
             return jnp.broadcast_to(jnp.diag(params.var), x.shape[:-1] + (dU, dU))
         return reflex(params, x).cov
 
+    def noise(key, n: int, dtype):
+        """The latent noise ε [n, latent] of a minibatch of n rows (one standard normal draw)."""
+        return jax.random.normal(key, (n, cfg.latent), dtype)
+
+    def loss_rows(params: PolicyParams, data: SStepData) -> LossRows:
+        """The loss's per-datum constants of ``data`` [B rows] (``data.tgt_prc`` = w·P)."""
+        norm, w = params.norm, data.wt
+        if data.tgt_logdet is None:
+            # log|P| of the unweighted precision (identity on zero-weight rows, whose term is
+            # multiplied by w = 0 anyway)
+            logdet_P = target_logdet(data.tgt_prc / jnp.where(w > 0, w, 1.0)[:, None, None], w)
+        else:
+            logdet_P = data.tgt_logdet
+        return LossRows(xn=encoder_input(norm, data.x), xh=head_input(norm, data.x), tgt_mu=data.tgt_mu,
+                        prc=data.tgt_prc, K=data.K, state_cov=data.state_cov, wt=w, logdet=logdet_P)
+
+    def quadratics(norm: Normalization, rows: LossRows, G, g, L):
+        """The controller terms per row, written out as einsums (``loss``'s definition).
+
+        Args: rows (LossRows of [b, ...]); G [b, dU, dX]; g [b, dU]; L [b, dU, dU].
+        Returns (action [b] = Δuᵀ(wP)Δu, gain [b] = tr(ΔKᵀ(wP)ΔK Σ_t), tr [b] = tr(wP L Lᵀ),
+        Δu [b, dU]), as ``fused_head`` (the loss takes half of each).
+        """
+        K, _ = to_raw(norm, G, g)
+        du = jnp.einsum("bij,bj->bi", G, rows.xh) + g - rows.tgt_mu
+        P = rows.prc  # = w·P_lqr
+        action = jnp.einsum("bi,bij,bj->b", du, P, du)
+        dK = K - rows.K
+        PdK = jnp.einsum("bij,bjx->bix", P, dK)
+        gain = jnp.einsum("biy,bix,bxy->b", dK, PdK, rows.state_cov)
+        tr = jnp.einsum("bij,bjk,bik->b", P, L, L)
+        return action, gain, tr, du
+
+    halved = ("action", "gain", "cov")  # ½ of a batch mean: the factor of the Gaussian KL
+
+    def combine(rows, kl, xhat, logdet, action, gain, tr, du, stacked: bool = False):
+        """The loss and its aux dict from a minibatch's per-row pieces.
+
+        Args: rows (LossRows or FusedRows of [b, ...]: xn, wt, logdet); kl [b] the latent term
+          Σ_j (μ_j² + σ_j² − log σ_j² − 1); xhat [b, dX]; logdet [b] of Ψ_Σ; action, gain, tr [b]
+          and du [b, dU] (``quadratics``);
+          stacked: take all batch means as one reduction of the stacked per-row terms (the
+          packed form: one kernel instead of six; ``action_mse`` then averages each row first,
+          the same mean summed in another order) instead of one mean per term (``loss``).
+        """
+        w = rows.wt
+        dU = du.shape[-1]
+        per_row = {
+            "recon": w * jnp.sum(jnp.square(rows.xn - xhat), axis=-1),
+            "latent_kl": w * 0.5 * kl,
+            "action": action,
+            "gain": gain,
+            # tr(wP L Lᵀ) and the constants of the Gaussian KL
+            "cov": tr - w * (logdet + dU + rows.logdet),
+            "action_mse": jnp.square(du),
+        }
+        if stacked:
+            per_row["action_mse"] = jnp.mean(per_row["action_mse"], axis=-1)
+            means = dict(zip(per_row, jnp.mean(jnp.stack(list(per_row.values()), axis=-1), axis=0)))
+        else:
+            means = {name: jnp.mean(v) for name, v in per_row.items()}
+        aux = {name: 0.5 * m if name in halved else m for name, m in means.items()}
+        value = aux["recon"] + cfg.alpha * aux["latent_kl"] + aux["action"] + aux["gain"] + aux["cov"]
+        return value, aux
+
     def loss(params: PolicyParams, batch: SStepData, key):
         """GMR S-step data term on a minibatch of B rows (module docstring); key: latent noise.
 
         Returns (recon + α·latent_kl + action + gain + cov, aux) with aux the five terms (batch
         means, as they enter the sum except for α) and ``action_mse`` = mean (u − tgt_mu)².
         """
-        norm = params.norm
-        xn = encoder_input(norm, batch.x)  # also the reconstruction target
-        mu, logvar = apply(params, GMRNet.encode, xn)
-        eps = jax.random.normal(key, mu.shape, mu.dtype)
-        z = mu + jnp.exp(0.5 * logvar) * eps
-        xhat = decode(params, z)
+        rows = loss_rows(params, batch)
+        mu, logvar = apply(params, GMRNet.encode, rows.xn)
+        z = mu + jnp.exp(0.5 * logvar) * noise(key, mu.shape[0], mu.dtype)
         G, g, L, logdet = head(params, z)
-        K, _ = to_raw(norm, G, g)
-        u = jnp.einsum("bij,bj->bi", G, head_input(norm, batch.x)) + g
+        kl = jnp.sum(jnp.square(mu) + jnp.exp(logvar) - logvar - 1.0, axis=-1)
+        return combine(rows, kl, decode(params, z), logdet, *quadratics(params.norm, rows, G, g, L))
 
-        w = batch.wt
-        P = batch.tgt_prc  # = w·P_lqr
-        dU = u.shape[-1]
-        recon = jnp.mean(w * jnp.sum(jnp.square(xn - xhat), axis=-1))
-        latent_kl = jnp.mean(w * 0.5 * jnp.sum(jnp.square(mu) + jnp.exp(logvar) - logvar - 1.0, axis=-1))
-        du = u - batch.tgt_mu
-        action_term = 0.5 * jnp.mean(jnp.einsum("bi,bij,bj->b", du, P, du))
-        dK = K - batch.K
-        PdK = jnp.einsum("bij,bjx->bix", P, dK)
-        gain = 0.5 * jnp.mean(jnp.einsum("biy,bix,bxy->b", dK, PdK, batch.state_cov))
-        # tr(wP L Lᵀ) and the constants of the Gaussian KL; log|P| of the unweighted precision
-        # (identity on zero-weight rows, whose term is multiplied by w = 0 anyway).
-        tr = jnp.einsum("bij,bjk,bik->b", P, L, L)
-        if batch.tgt_logdet is None:
-            P_unw = P / jnp.where(w > 0, w, 1.0)[:, None, None]
-            logdet_P = target_logdet(P_unw, w)
+    # ---- the S-step's packed form (TrainingForm): the same loss, fewer operations per step.
+    # Slots of the dense layout: the encoder's layers, then the decoder's and the translation
+    # network's. Both read z; with equal depths they run side by side (one batched product per
+    # layer, slots interleaved layer by layer), otherwise one after the other. The translation
+    # network's last layer emits the packed head (head_columns).
+
+    n_enc = len(cfg.encoder_hidden) + 1
+    n_dec = len(cfg.decoder_hidden) + 1
+    n_trans = len(cfg.translation_hidden) + 1
+    side_by_side = n_dec == n_trans
+
+    def slot_order(enc, dec, trans, side_by_side):
+        """Per-network lists of layers -> the list in slot order."""
+        rest = [a for pair in zip(dec, trans) for a in pair] if side_by_side else dec + trans
+        return enc + rest
+
+    def layout(dX: int, dU: int):
+        """(DenseLayout, side_by_side) for a state of dX and an action of dU entries."""
+        return dense_layout(slot_order(dense_chain(dX, cfg.encoder_hidden, 2 * cfg.latent),
+                                       dense_chain(cfg.latent, cfg.decoder_hidden, dX),
+                                       dense_chain(cfg.latent, cfg.translation_hidden, packed_head_size(dX, dU)),
+                                       side_by_side)), side_by_side
+
+    def network_order(slots, side_by_side):
+        """The inverse of slot_order: slots -> (enc, dec, trans) lists of layers."""
+        enc, rest = slots[:n_enc], slots[n_enc:]
+        if side_by_side:
+            return enc, rest[0::2], rest[1::2]
+        return enc, rest[:n_dec], rest[n_dec:]
+
+    def pack(params: PolicyParams):
+        """params.net (Flax) -> θ [S·(I+1)·O], the S-step's flat weight vector."""
+        dX, dU = dims(params)
+        lay, side = layout(dX, dU)
+        net = params.net["params"]
+        enc, dec, trans = (flax_dense_layers(net[name], n) for name, n in
+                           (("encoder", n_enc), ("decoder", n_dec), ("translation", n_trans)))
+        src = head_columns(dX, dU)
+        square = lambda a: jnp.where(src >= 0, a[..., np.maximum(src, 0)], 0)  # noqa: E731
+        trans[-1] = tuple(square(a) for a in trans[-1])
+        return pack_dense(lay, slot_order(enc, dec, trans, side)).reshape(-1)
+
+    def unpack(params: PolicyParams, theta):
+        """θ -> params.net (Flax), the inverse of ``pack``."""
+        dX, dU = dims(params)
+        lay, side = layout(dX, dU)
+        enc, dec, trans = network_order(unpack_dense(lay, theta.reshape(lay.array_shape)), side)
+        src = head_columns(dX, dU)
+        cols = np.argsort(np.where(src >= 0, src, len(src)))[: head_size(dX, dU)]  # head col -> packed col
+        trans[-1] = tuple(a[..., cols] for a in trans[-1])
+        return {"params": {"encoder": flax_dense_params(enc), "decoder": flax_dense_params(dec),
+                           "translation": flax_dense_params(trans)}}
+
+    def fused_rows(params: PolicyParams, data: SStepData) -> FusedRows:
+        """The packed form's per-datum constants of ``data`` [B rows]."""
+        r = loss_rows(params, data)
+        return FusedRows(xn=r.xn, xs=jnp.concatenate([r.xh[..., None], symmetrize(r.state_cov)], axis=-1),
+                         tgt_mu=r.tgt_mu, prc=symmetrize(r.prc), K=r.K, wt=r.wt, logdet=r.logdet)
+
+    def row_shapes(dX: int, dU: int) -> FusedRows:
+        return FusedRows(xn=(dX,), xs=(dX, 1 + dX), tgt_mu=(dU,), prc=(dU, dU), K=(dU, dX), wt=(), logdet=())
+
+    def packed_loss(params: PolicyParams, W, rows: FusedRows, eps, deltas):
+        """``loss`` on the packed weights W [S, I+1, O] with ``deltas`` added to the
+        pre-activations (see dense_value_and_grad) -> (value, (aux, inputs [S, b, I]))."""
+        dX, dU = dims(params)
+        lay, side = layout(dX, dU)
+        act = functools.partial(nn.leaky_relu, negative_slope=cfg.negative_slope)
+        enc, inputs = dense_stack(W, lay, 0, 1, n_enc, rows.xn, act, deltas)
+        z, kl = reparameterize(enc[0, :, : 2 * cfg.latent], eps)
+        if side:
+            out, dt_inputs = dense_stack(W, lay, n_enc, 2, n_dec, z, act, deltas)
+            xhat, out_head, inputs = out[0], out[1], [inputs, dt_inputs]
         else:
-            logdet_P = batch.tgt_logdet
-        cov = 0.5 * jnp.mean(tr - w * (logdet + dU + logdet_P))
+            dec, dec_inputs = dense_stack(W, lay, n_enc, 1, n_dec, z, act, deltas)
+            trans, trans_inputs = dense_stack(W, lay, n_enc + n_dec, 1, n_trans, z, act, deltas)
+            xhat, out_head, inputs = dec[0], trans[0], [inputs, dec_inputs, trans_inputs]
+        G, g, square = _split_head(out_head[:, : packed_head_size(dX, dU)], dX, dU)
+        scale = jnp.ones_like(params.norm.scale) if cfg.head_coordinates == "raw" else params.norm.scale
+        action, gain, tr, logdet, du = fused_head(
+            cfg.init_var, cfg.cov_std_range, cfg.cov_offdiag_bound, G, g,
+            square.reshape(square.shape[:-1] + (dU, dU)), scale, rows.xs, rows.tgt_mu, rows.prc, rows.K)
+        value, aux = combine(rows, kl, xhat[:, :dX], logdet, action, gain, tr, du, stacked=True)
+        return value, (aux, jnp.concatenate(inputs, axis=0))
 
-        value = recon + cfg.alpha * latent_kl + action_term + gain + cov
-        aux = {"recon": recon, "latent_kl": latent_kl, "action": action_term, "gain": gain,
-               "cov": cov, "action_mse": jnp.mean(jnp.square(du))}
-        return value, aux
+    def packed_value_and_grad(params: PolicyParams, theta, rows, eps):
+        """TrainingForm.value_and_grad: θ, rows [b, F], ε [b, latent] -> ((value, aux), grad)."""
+        dX, dU = dims(params)
+        lay, _ = layout(dX, dU)
+        W = theta.reshape(lay.array_shape)
+        batch = unpack_rows(rows, row_shapes(dX, dU))
+        (value, aux), grad = dense_value_and_grad(lambda d: packed_loss(params, W, batch, eps, d), W,
+                                                  rows.shape[0])
+        return (value, aux), grad.reshape(-1)
+
+    training = TrainingForm(pack=pack, unpack=unpack,
+                            rows=lambda params, data: pack_rows(fused_rows(params, data)),
+                            noise=noise, value_and_grad=packed_value_and_grad)
 
     def finalize(params: PolicyParams, data: SStepData) -> PolicyParams:
         """Closed-form variance var = 1/diag(weighted mean precision + 2·ent_reg) (as the MLP)."""
@@ -361,7 +684,8 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         """x [dX] -> (K [dU, dX], k [dU]): exact first-order expansion of u(x) = Ψ_K(x) x + Ψ_k(x)."""
         return linearize_mean(mean, params, x)
 
-    policy = Policy(init=init, mean=mean, covariance=covariance, loss=loss, finalize=finalize)
+    policy = Policy(init=init, mean=mean, covariance=covariance, loss=loss, finalize=finalize,
+                    training=training)
     return GMR(policy=policy, encode=encode, decode=decode, translate=translate, reflex=reflex,
                action=action, linearize=linearize)
 

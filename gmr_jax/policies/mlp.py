@@ -13,15 +13,18 @@ the paper start from a useful gradient; "normal" is the toolbox's N(0, 0.01²), 
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 from gmr_jax.config import MLPConfig
-from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, default_float,
-                                   identity_normalization, normalize_input,
-                                   weighted_action_error)
+from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, TrainingForm, default_float,
+                                   dense_chain, dense_layout, dense_stack, dense_value_and_grad,
+                                   flax_dense_layers, flax_dense_params, identity_normalization,
+                                   normalize_input, pack_dense, pack_rows, quadratic_rows, symmetrize,
+                                   unpack_dense, unpack_rows, weighted_action_error)
 
 
 ACTIVATION_FNS: dict[str, Callable] = {
@@ -53,6 +56,20 @@ class MLP(nn.Module):
                              param_dtype=self.param_dtype)(x))
         return nn.Dense(self.out, kernel_init=kernel_init, bias_init=nn.initializers.zeros,
                         param_dtype=self.param_dtype)(x)
+
+
+class LossRows(NamedTuple):
+    """The per-datum constants of the MLP loss in the S-step's packed form (shapes per row; a
+    batch adds a leading axis).
+
+    Attributes:
+      xn: [dX] the normalised state x̃; tgt_mu: [dU] target action; prc: [dU, dU] w·P,
+        symmetrised (the loss sees only the symmetric part; ``quadratic_rows`` needs it).
+    """
+
+    xn: jax.Array
+    tgt_mu: jax.Array
+    prc: jax.Array
 
 
 def closed_form_variance(tgt_prc, wt, ent_reg: float = 0.0):
@@ -101,9 +118,49 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
         value = weighted_action_error(u, batch.tgt_mu, batch.tgt_prc)
         return value, {"action_mse": jnp.mean(jnp.square(u - batch.tgt_mu))}
 
+    # ---- the S-step's packed form (TrainingForm): the same loss, fewer operations per step.
+    n_layers = len(cfg.hidden) + 1
+
+    def layout(params: PolicyParams):
+        return dense_layout(dense_chain(params.norm.scale.shape[-1], cfg.hidden, params.var.shape[-1]))
+
+    def pack(params: PolicyParams):
+        """params.net (Flax) -> θ [S·(I+1)·O], the S-step's flat weight vector."""
+        return pack_dense(layout(params), flax_dense_layers(params.net["params"], n_layers)).reshape(-1)
+
+    def unpack(params: PolicyParams, theta):
+        """θ -> params.net (Flax), the inverse of ``pack``."""
+        lay = layout(params)
+        return {"params": flax_dense_params(unpack_dense(lay, theta.reshape(lay.array_shape)))}
+
+    def rows(params: PolicyParams, data: SStepData):
+        return pack_rows(LossRows(xn=normalize_input(params.norm, data.x), tgt_mu=data.tgt_mu,
+                                  prc=symmetrize(data.tgt_prc)))
+
+    def packed_value_and_grad(params: PolicyParams, theta, rows, noise):
+        """TrainingForm.value_and_grad: θ, rows [b, F] -> ((value, aux), grad); noise unused."""
+        del noise
+        lay = layout(params)
+        dX, dU = params.norm.scale.shape[-1], params.var.shape[-1]
+        W = theta.reshape(lay.array_shape)
+        batch = unpack_rows(rows, LossRows(xn=(dX,), tgt_mu=(dU,), prc=(dU, dU)))
+
+        def f(deltas):
+            out, inputs = dense_stack(W, lay, 0, 1, n_layers, batch.xn, ACTIVATION_FNS[cfg.activation], deltas)
+            du = out[0, :, :dU] - batch.tgt_mu
+            value = 0.5 * jnp.mean(quadratic_rows(du, batch.prc))
+            return value, ({"action_mse": jnp.mean(jnp.square(du))}, inputs)
+
+        (value, aux), grad = dense_value_and_grad(f, W, rows.shape[0])
+        return (value, aux), grad.reshape(-1)
+
+    training = TrainingForm(pack=pack, unpack=unpack, rows=rows, noise=None,
+                            value_and_grad=packed_value_and_grad)
+
     def finalize(params: PolicyParams, data: SStepData) -> PolicyParams:
         """Closed-form variance after the S-step (data: unweighted precisions, normalised wt)."""
         var = closed_form_variance(data.tgt_prc, data.wt, cfg.ent_reg)
         return params._replace(var=var.astype(params.var.dtype))
 
-    return Policy(init=init, mean=mean, covariance=covariance, loss=loss, finalize=finalize)
+    return Policy(init=init, mean=mean, covariance=covariance, loss=loss, finalize=finalize,
+                  training=training)
