@@ -27,7 +27,8 @@ import jax.numpy as jnp
 from gmr_jax import linalg
 from gmr_jax.config import DynamicsConfig
 from gmr_jax.gmm import gmm_empty
-from gmr_jax.prior import conditional_fit, refit_gmm, regularizer_matrix, ring_insert, stored_mask
+from gmr_jax.prior import (conditional_fit, refit_gmm, regularizer_matrix, ring_insert, sample_sizes,
+                           stored_mask)
 from gmr_jax.types import GMM, Dynamics
 
 Array = jax.Array
@@ -149,10 +150,8 @@ def fit_dynamics(prior: DynamicsPrior, X: Array, U: Array, cfg: DynamicsConfig) 
     Returns: Dynamics with Fm [T, dX, dX+dU], fv [T, dX], dyn_covar [T, dX, dX], x0mu [dX],
       x0sigma [dX, dX].
     """
-    N, T, dX = X.shape
+    N, T, dX = sample_sizes(X, "fit_dynamics")
     dU = U.shape[-1]
-    if N < 2:
-        raise ValueError(f"fit_dynamics: needs at least 2 samples, got N={N}")
     dtype = X.dtype
     dxu = dX + dU
     D = 2 * dX + dU

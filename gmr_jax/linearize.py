@@ -29,7 +29,8 @@ import jax.numpy as jnp
 from gmr_jax.config import POLICY_PRIOR_MODES, PolicyPriorConfig
 from gmr_jax import linalg
 from gmr_jax.gmm import gmm_empty
-from gmr_jax.prior import conditional_fit, refit_gmm, regularizer_matrix, ring_insert, stored_mask
+from gmr_jax.prior import (conditional_fit, refit_gmm, regularizer_matrix, ring_insert, sample_sizes,
+                           stored_mask)
 from gmr_jax.types import GMM
 
 Array = jax.Array
@@ -125,10 +126,8 @@ def linearize_policy(prior: PolicyPrior, X: Array, pol_mu: Array, pol_sig: Array
       cfg: PolicyPriorConfig.
     Returns: (pol_K [T, dU, dX], pol_k [T, dU], pol_S [T, dU, dU]).
     """
-    N, T, dX = X.shape
+    N, T, dX = sample_sizes(X, "linearize_policy")
     dU = pol_mu.shape[-1]
-    if N < 2:
-        raise ValueError(f"linearize_policy: needs at least 2 samples, got N={N}")
     dtype = X.dtype
     D = dX + dU
     pol_sig = _collapse_pol_sig(jnp.asarray(pol_sig, dtype), T)

@@ -40,6 +40,14 @@ def stored_mask(count: Array, S: int) -> Array:
     return jnp.arange(S) < jnp.minimum(count, S)
 
 
+def sample_sizes(X: Array, who: str) -> tuple[int, int, int]:
+    """(N, T, dX) of samples X [N, T, dX]; a fit needs N ≥ 2 (ValueError naming ``who``)."""
+    N, T, dX = X.shape
+    if N < 2:
+        raise ValueError(f"{who}: needs at least 2 samples, got N={N}")
+    return N, T, dX
+
+
 def refit_gmm(gmm: GMM, key, pts: Array, count: Array, min_samples_per_cluster: int,
               max_clusters: int, em_iterations: int) -> GMM:
     """Refit a prior's GMM on the points of its stored trajectories (toolbox ``update``).

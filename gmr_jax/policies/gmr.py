@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import functools
 import math
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import flax.linen as nn
@@ -415,6 +416,29 @@ def linearize_mean(mean_fn, params: PolicyParams, x: Array):
 @functools.lru_cache(maxsize=None)
 def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
     """All GMR functions for a configuration (cached: equal configurations give the same object)."""
+    net = _network_functions(cfg)
+    reflexes = _reflex_functions(cfg, net)
+    terms = _loss_functions(cfg, net)
+    training = _training_form(cfg, net, terms, _packing(cfg, net))
+
+    def finalize(params: PolicyParams, data: SStepData) -> PolicyParams:
+        """Closed-form variance var = 1/diag(weighted mean precision + 2·ent_reg) (as the MLP)."""
+        var = closed_form_variance(data.tgt_prc, data.wt, cfg.ent_reg)
+        return params._replace(var=var.astype(params.var.dtype))
+
+    def linearize(params: PolicyParams, x):
+        """x [dX] -> (K [dU, dX], k [dU]): exact first-order expansion of u(x) = Ψ_K(x) x + Ψ_k(x)."""
+        return linearize_mean(reflexes.mean, params, x)
+
+    policy = Policy(init=net.init, mean=reflexes.mean, covariance=reflexes.covariance, loss=terms.loss,
+                    finalize=finalize, training=training)
+    return GMR(policy=policy, encode=net.encode, decode=net.decode, translate=reflexes.translate,
+               reflex=reflexes.reflex, action=reflexes.action, linearize=linearize)
+
+
+def _network_functions(cfg: GMRConfig) -> SimpleNamespace:
+    """The three networks (Flax) and their inputs: module, dims, apply, init, encoder_input,
+    encode, decode, head, to_raw, head_input."""
 
     def module(dX: int, dU: int, dtype=jnp.float32) -> GMRNet:
         return GMRNet(dX=dX, dU=dU, latent=cfg.latent, encoder_hidden=tuple(cfg.encoder_hidden),
@@ -468,27 +492,33 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         """The state the head's gain multiplies: x̃ ("normalized") or x ("raw")."""
         return x if cfg.head_coordinates == "raw" else normalize_input(norm, x)
 
+    return SimpleNamespace(module=module, dims=dims, apply=apply, init=init, encoder_input=encoder_input, encode=encode, decode=decode, head=head, to_raw=to_raw, head_input=head_input)
+
+
+def _reflex_functions(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
+    """The motor reflex and the actions: translate, reflex, action, mean, covariance."""
+
     def translate(params: PolicyParams, z) -> MotorReflex:
         """z [..., latent] -> the motor reflex (Ψ_K, Ψ_k, Ψ_Σ) in raw coordinates."""
-        G, g, L, logdet = head(params, z)
-        K, k = to_raw(params.norm, G, g)
+        G, g, L, logdet = net.head(params, z)
+        K, k = net.to_raw(params.norm, G, g)
         return MotorReflex(K=K, k=k, cov=L @ jnp.swapaxes(L, -1, -2), chol=L, logdet=logdet)
 
     def reflex(params: PolicyParams, x) -> MotorReflex:
         """x [..., dX] -> the test-time motor reflex, generated at z = μ_z(x)."""
-        mu, _ = encode(params, x)
+        mu, _ = net.encode(params, x)
         return translate(params, mu)
 
     def action(params: PolicyParams, x, z):
         """u = Ψ_K(z) x + Ψ_k(z): x [..., dX] (raw), z [..., latent] -> [..., dU]."""
-        G, g, _, _ = head(params, z)
+        G, g, _, _ = net.head(params, z)
         # Evaluated in the head's coordinates (G x̃ + g), identical to Ψ_K x + Ψ_k but free of
         # the cancellation between a large Ψ_K x and Ψ_k.
-        return jnp.einsum("...ij,...j->...i", G, head_input(params.norm, x)) + g
+        return jnp.einsum("...ij,...j->...i", G, net.head_input(params.norm, x)) + g
 
     def mean(params: PolicyParams, x):
         """Deterministic action (z = μ_z): x [..., dX] -> u [..., dU]."""
-        mu, _ = encode(params, x)
+        mu, _ = net.encode(params, x)
         return action(params, x, mu)
 
     def covariance(params: PolicyParams, x):
@@ -497,6 +527,12 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
             dU = params.var.shape[-1]
             return jnp.broadcast_to(jnp.diag(params.var), x.shape[:-1] + (dU, dU))
         return reflex(params, x).cov
+
+    return SimpleNamespace(translate=translate, reflex=reflex, action=action, mean=mean, covariance=covariance)
+
+
+def _loss_functions(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
+    """The S-step's loss and its pieces: noise, loss_rows, quadratics, combine, loss."""
 
     def noise(key, n: int, dtype):
         """The latent noise ε [n, latent] of a minibatch of n rows (one standard normal draw)."""
@@ -511,7 +547,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
             logdet_P = target_logdet(data.tgt_prc / jnp.where(w > 0, w, 1.0)[:, None, None], w)
         else:
             logdet_P = data.tgt_logdet
-        return LossRows(xn=encoder_input(norm, data.x), xh=head_input(norm, data.x), tgt_mu=data.tgt_mu,
+        return LossRows(xn=net.encoder_input(norm, data.x), xh=net.head_input(norm, data.x), tgt_mu=data.tgt_mu,
                         prc=data.tgt_prc, K=data.K, state_cov=data.state_cov, wt=w, logdet=logdet_P)
 
     def quadratics(norm: Normalization, rows: LossRows, G, g, L):
@@ -521,7 +557,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         Returns (action [b] = Δuᵀ(wP)Δu, gain [b] = tr(ΔKᵀ(wP)ΔK Σ_t), tr [b] = tr(wP L Lᵀ),
         Δu [b, dU]), as ``fused_head`` (the loss takes half of each).
         """
-        K, _ = to_raw(norm, G, g)
+        K, _ = net.to_raw(norm, G, g)
         du = jnp.einsum("bij,bj->bi", G, rows.xh) + g - rows.tgt_mu
         P = rows.prc  # = w·P_lqr
         action = jnp.einsum("bi,bij,bj->b", du, P, du)
@@ -570,18 +606,24 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         means, as they enter the sum except for α) and ``action_mse`` = mean (u − tgt_mu)².
         """
         rows = loss_rows(params, batch)
-        mu, logvar = apply(params, GMRNet.encode, rows.xn)
+        mu, logvar = net.apply(params, GMRNet.encode, rows.xn)
         z = mu + jnp.exp(0.5 * logvar) * noise(key, mu.shape[0], mu.dtype)
-        G, g, L, logdet = head(params, z)
+        G, g, L, logdet = net.head(params, z)
         kl = jnp.sum(jnp.square(mu) + jnp.exp(logvar) - logvar - 1.0, axis=-1)
-        return combine(rows, kl, decode(params, z), logdet, *quadratics(params.norm, rows, G, g, L))
+        return combine(rows, kl, net.decode(params, z), logdet, *quadratics(params.norm, rows, G, g, L))
 
-    # ---- the S-step's packed form (TrainingForm): the same loss, fewer operations per step.
-    # Slots of the dense layout: the encoder's layers, then the decoder's and the translation
-    # network's. Both read z; with equal depths they run side by side (one batched product per
-    # layer, slots interleaved layer by layer), otherwise one after the other. The translation
-    # network's last layer emits the packed head (head_columns).
+    return SimpleNamespace(noise=noise, loss_rows=loss_rows, quadratics=quadratics, combine=combine, loss=loss)
 
+
+def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
+    """The dense layout of the S-step's packed form and the map between it and the Flax weights:
+    n_enc, n_dec, n_trans, slot_order, layout, network_order, pack, unpack.
+
+    Slots of the dense layout: the encoder's layers, then the decoder's and the translation
+    network's. Both read z; with equal depths they run side by side (one batched product per
+    layer, slots interleaved layer by layer), otherwise one after the other. The translation
+    network's last layer emits the packed head (head_columns).
+    """
     n_enc = len(cfg.encoder_hidden) + 1
     n_dec = len(cfg.decoder_hidden) + 1
     n_trans = len(cfg.translation_hidden) + 1
@@ -608,10 +650,10 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
 
     def pack(params: PolicyParams):
         """params.net (Flax) -> θ [S·(I+1)·O], the S-step's flat weight vector."""
-        dX, dU = dims(params)
+        dX, dU = net.dims(params)
         lay, side = layout(dX, dU)
-        net = params.net["params"]
-        enc, dec, trans = (flax_dense_layers(net[name], n) for name, n in
+        weights = params.net["params"]
+        enc, dec, trans = (flax_dense_layers(weights[name], n) for name, n in
                            (("encoder", n_enc), ("decoder", n_dec), ("translation", n_trans)))
         src = head_columns(dX, dU)
         square = lambda a: jnp.where(src >= 0, a[..., np.maximum(src, 0)], 0)  # noqa: E731
@@ -620,7 +662,7 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
 
     def unpack(params: PolicyParams, theta):
         """θ -> params.net (Flax), the inverse of ``pack``."""
-        dX, dU = dims(params)
+        dX, dU = net.dims(params)
         lay, side = layout(dX, dU)
         enc, dec, trans = network_order(unpack_dense(lay, theta.reshape(lay.array_shape)), side)
         src = head_columns(dX, dU)
@@ -629,9 +671,16 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         return {"params": {"encoder": flax_dense_params(enc), "decoder": flax_dense_params(dec),
                            "translation": flax_dense_params(trans)}}
 
+    return SimpleNamespace(n_enc=n_enc, n_dec=n_dec, n_trans=n_trans, slot_order=slot_order, layout=layout, network_order=network_order, pack=pack, unpack=unpack)
+
+
+def _training_form(cfg: GMRConfig, net: SimpleNamespace, terms: SimpleNamespace,
+                   packing: SimpleNamespace) -> TrainingForm:
+    """The S-step's packed form (TrainingForm): the same loss, fewer operations per step."""
+
     def fused_rows(params: PolicyParams, data: SStepData) -> FusedRows:
         """The packed form's per-datum constants of ``data`` [B rows]."""
-        r = loss_rows(params, data)
+        r = terms.loss_rows(params, data)
         return FusedRows(xn=r.xn, xs=jnp.concatenate([r.xh[..., None], symmetrize(r.state_cov)], axis=-1),
                          tgt_mu=r.tgt_mu, prc=symmetrize(r.prc), K=r.K, wt=r.wt, logdet=r.logdet)
 
@@ -641,53 +690,40 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
     def packed_loss(params: PolicyParams, W, rows: FusedRows, eps, deltas):
         """``loss`` on the packed weights W [S, I+1, O] with ``deltas`` added to the
         pre-activations (see dense_value_and_grad) -> (value, (aux, inputs [S, b, I]))."""
-        dX, dU = dims(params)
-        lay, side = layout(dX, dU)
+        dX, dU = net.dims(params)
+        lay, side = packing.layout(dX, dU)
         act = functools.partial(nn.leaky_relu, negative_slope=cfg.negative_slope)
-        enc, inputs = dense_stack(W, lay, 0, 1, n_enc, rows.xn, act, deltas)
+        enc, inputs = dense_stack(W, lay, 0, 1, packing.n_enc, rows.xn, act, deltas)
         z, kl = reparameterize(enc[0, :, : 2 * cfg.latent], eps)
         if side:
-            out, dt_inputs = dense_stack(W, lay, n_enc, 2, n_dec, z, act, deltas)
+            out, dt_inputs = dense_stack(W, lay, packing.n_enc, 2, packing.n_dec, z, act, deltas)
             xhat, out_head, inputs = out[0], out[1], [inputs, dt_inputs]
         else:
-            dec, dec_inputs = dense_stack(W, lay, n_enc, 1, n_dec, z, act, deltas)
-            trans, trans_inputs = dense_stack(W, lay, n_enc + n_dec, 1, n_trans, z, act, deltas)
+            dec, dec_inputs = dense_stack(W, lay, packing.n_enc, 1, packing.n_dec, z, act, deltas)
+            trans, trans_inputs = dense_stack(W, lay, packing.n_enc + packing.n_dec, 1, packing.n_trans, z, act, deltas)
             xhat, out_head, inputs = dec[0], trans[0], [inputs, dec_inputs, trans_inputs]
         G, g, square = _split_head(out_head[:, : packed_head_size(dX, dU)], dX, dU)
         scale = jnp.ones_like(params.norm.scale) if cfg.head_coordinates == "raw" else params.norm.scale
         action, gain, tr, logdet, du = fused_head(
             cfg.init_var, cfg.cov_std_range, cfg.cov_offdiag_bound, G, g,
             square.reshape(square.shape[:-1] + (dU, dU)), scale, rows.xs, rows.tgt_mu, rows.prc, rows.K)
-        value, aux = combine(rows, kl, xhat[:, :dX], logdet, action, gain, tr, du, stacked=True)
+        value, aux = terms.combine(rows, kl, xhat[:, :dX], logdet, action, gain, tr, du, stacked=True)
         return value, (aux, jnp.concatenate(inputs, axis=0))
 
     def packed_value_and_grad(params: PolicyParams, theta, rows, eps):
         """TrainingForm.value_and_grad: θ, rows [b, F], ε [b, latent] -> ((value, aux), grad)."""
-        dX, dU = dims(params)
-        lay, _ = layout(dX, dU)
+        dX, dU = net.dims(params)
+        lay, _ = packing.layout(dX, dU)
         W = theta.reshape(lay.array_shape)
         batch = unpack_rows(rows, row_shapes(dX, dU))
         (value, aux), grad = dense_value_and_grad(lambda d: packed_loss(params, W, batch, eps, d), W,
                                                   rows.shape[0])
         return (value, aux), grad.reshape(-1)
 
-    training = TrainingForm(pack=pack, unpack=unpack,
+    return TrainingForm(pack=packing.pack, unpack=packing.unpack,
                             rows=lambda params, data: pack_rows(fused_rows(params, data)),
-                            noise=noise, value_and_grad=packed_value_and_grad)
+                            noise=terms.noise, value_and_grad=packed_value_and_grad)
 
-    def finalize(params: PolicyParams, data: SStepData) -> PolicyParams:
-        """Closed-form variance var = 1/diag(weighted mean precision + 2·ent_reg) (as the MLP)."""
-        var = closed_form_variance(data.tgt_prc, data.wt, cfg.ent_reg)
-        return params._replace(var=var.astype(params.var.dtype))
-
-    def linearize(params: PolicyParams, x):
-        """x [dX] -> (K [dU, dX], k [dU]): exact first-order expansion of u(x) = Ψ_K(x) x + Ψ_k(x)."""
-        return linearize_mean(mean, params, x)
-
-    policy = Policy(init=init, mean=mean, covariance=covariance, loss=loss, finalize=finalize,
-                    training=training)
-    return GMR(policy=policy, encode=encode, decode=decode, translate=translate, reflex=reflex,
-               action=action, linearize=linearize)
 
 
 def make_gmr_policy(cfg: GMRConfig = GMRConfig()) -> Policy:
