@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from typing import Any
 
 import jax
@@ -247,6 +248,24 @@ def _rebuild(entry: dict, arr: np.ndarray, leaf):
     return arr
 
 
+def _quiet_closed_event_loop() -> None:
+    """After a failed read, tensorstore still delivers callbacks to the asyncio loop that orbax
+    has already closed; each would print a "RuntimeError: Event loop is closed" traceback on
+    stderr after the one clear CorruptCheckpointError. Drop exactly those (every other
+    unraisable exception still reaches the current hook)."""
+    hook = sys.unraisablehook
+    if getattr(hook, "_gmr_jax_quiet", False):
+        return
+
+    def quiet(unraisable):
+        exc = unraisable.exc_value
+        if isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed":
+            return
+        hook(unraisable)
+    quiet._gmr_jax_quiet = True
+    sys.unraisablehook = quiet
+
+
 def _read_meta(manager, step: int, where: str, hint: str) -> dict:
     """The stored manifest and metadata of ``step`` (CorruptCheckpointError if unreadable)."""
     ocp = _ocp()
@@ -334,6 +353,7 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
                 arrays = manager.restore(step, args=ocp.args.Composite(
                     **{_STATE: ocp.args.StandardRestore(targets)}))[_STATE]
             except Exception as err:
+                _quiet_closed_event_loop()
                 raise CorruptCheckpointError(f"{where} is corrupt: its arrays cannot be read "
                                       f"({type(err).__name__}: {err}){hint}") from err
         else:

@@ -158,3 +158,37 @@ def test_failed_save_keeps_previous(tmp_path, monkeypatch):
     with pytest.raises(ck.CheckpointError, match="older than the latest step 2"):
         ck.save(path, new, 0)
     _assert_same(ck.restore(path, old, step=2)[0], new)
+
+
+_CORRUPT_SCRIPT = r"""
+import gc, glob, os, sys, time
+import numpy as np
+from gmr_jax import checkpoint
+d = sys.argv[1]
+state = {"x": np.arange(1000.0), "y": np.ones((50, 50))}
+checkpoint.save(d, state, step=1)
+checkpoint.save(d, state, step=2)
+for f in glob.glob(os.path.join(d, "2", "state", "**"), recursive=True):
+    if os.path.isfile(f) and os.sep + "d" + os.sep in f:  # the array data files
+        b = bytearray(open(f, "rb").read()); b[len(b) // 2] ^= 0xFF; open(f, "wb").write(bytes(b))
+for _ in range(8):
+    try:
+        checkpoint.restore(d, state, step=2)
+    except checkpoint.CorruptCheckpointError as err:
+        print("corrupt:", str(err)[:40])
+gc.collect(); time.sleep(0.5); gc.collect()
+"""
+
+
+def test_a_corrupt_checkpoint_reports_one_error_and_no_stray_tracebacks(tmp_path):
+    """A flipped byte in the array data: CorruptCheckpointError, and nothing else on stderr (the
+    failed read used to leave tensorstore callbacks that printed "Event loop is closed"
+    tracebacks after the error). Run in a fresh interpreter, as a user's CLI would be."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _CORRUPT_SCRIPT, str(tmp_path / "ckpt")],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.count("corrupt: checkpoint step 2") == 8, out.stdout
+    assert "Traceback" not in out.stderr and "Event loop is closed" not in out.stderr, out.stderr[-2000:]
