@@ -375,13 +375,15 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     num = k_init.shape[0]
     step = robustness = None
     with scheduler.tracing(ticket):
+        shapes = jax.eval_shape(init, k_init)
         state, history = None, []
-        if resume:
-            state, history = _restore(cfg, seeds, ckpt_dir, layout.real(state_future.result()), report)
+        if resume:  # the real seeds' shapes are the template: no wait for the initial state
+            real = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct((layout.num,) + a.shape[1:], a.dtype),
+                                          shapes)
+            state, history = _restore(cfg, seeds, ckpt_dir, real, report)
         if history:
             report(f"resumed from iteration {len(history)}")
             state = layout.device(state)
-        shapes = jax.eval_shape(init, k_init)
         if len(history) < stop:
             step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler)
         if policies.spec_for(cfg) is not None and stop == cfg.iterations:
