@@ -65,6 +65,8 @@ def soak_run(cfg: config.Config, num_seeds: int, chunk: int, mesh, first_seed: i
         nonfinite.append(~(_finite_per_seed(hist) & _finite_per_seed(final.policy.params if final.policy else final.traj)))
         curve = "final_state_mse_policy" if "final_state_mse_policy" in hist else "final_state_mse_lqr"
         mse.append(np.asarray(hist[curve])[:, -1].max(axis=-1))
+        print(f"  seeds {start}-{start + n - 1}: {int(failed[-1].sum())} failed, "
+              f"{int(nonfinite[-1].sum())} non-finite; {run_s:.1f} s so far", flush=True)
     failed, nonfinite, mse = np.concatenate(failed), np.concatenate(nonfinite), np.concatenate(mse)
     return {"seeds": num_seeds, "failed": int(failed.sum()), "nonfinite": int(nonfinite.sum()),
             "failed_seeds": (np.flatnonzero(failed) + first_seed).tolist()[:50],
@@ -78,6 +80,8 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=int, default=1024)
     p.add_argument("--chunk", type=int, default=256, help="seeds per compiled call")
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="first seed (to split a long soak over several calls)")
     p.add_argument("--runs", default="A/gmr,A/mdgps,AB/gmr,AB/mdgps", help="scenario/algorithm pairs")
     p.add_argument("--precision", default="float64", choices=("float32", "float64"))
     p.add_argument("--backend", default="mjx", choices=("auto", "mjx", "mujoco"))
@@ -98,13 +102,13 @@ def main(argv=None) -> int:
     for name in args.runs.split(","):
         scenario, algorithm = name.split("/")
         cfg = config.reach(scenario, algorithm, sim__backend=args.backend, **overrides)
-        rows[name] = row = soak_run(cfg, args.seeds, args.chunk, mesh)
+        rows[name] = row = soak_run(cfg, args.seeds, args.chunk, mesh, args.first_seed)
         print(f"{name}: {row['failed']} failed, {row['nonfinite']} non-finite of {row['seeds']} seeds; "
               f"final MSE median {row['final_mse_median']:.3g}, {row['success_0.01']} below 0.01; "
               f"compile {row['compile_s']:.1f} s, run {row['run_s']:.1f} s", flush=True)
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"environment": env, "args": vars(args), "runs": rows}, f, indent=2)
+        if args.out:  # after every run, so that a call cut short keeps the runs it finished
+            with open(args.out, "w") as f:
+                json.dump({"environment": env, "args": vars(args), "runs": rows}, f, indent=2)
     return 0
 
 
