@@ -7,8 +7,8 @@ Derives, with C MuJoCo only, from ``jaco_mjcf/block_in_hole.xml``:
 * conditions C and D: the arm at rest with the block above the hole, C 60 mm and D 120 mm above
   the rim. Their lateral offsets are not picked by hand: each is solved so that the straight
   line in joint space from the condition to q* (what a controller that moves towards q* in
-  joint space roughly follows) passes the tops of the press-fit nubs within 0.1 mm of the hole
-  axis, so moving towards q* moves the block down into the hole. A joint-space line is not a
+  joint space roughly follows) passes 5 mm above the rim within 0.1 mm of the hole axis, so
+  moving towards q* moves the block down into the hole. A joint-space line is not a
   Cartesian one: it bows sideways by several millimetres over these distances, which is what
   the offsets compensate;
 * a check that a 20 Hz time-varying linear controller (the class GPS learns) inserts the block
@@ -34,8 +34,10 @@ from gmr_jax.tasks import block_in_hole as task
 
 SCENE = pathlib.Path(__file__).resolve().parent.parent / "jaco_mjcf" / "block_in_hole.xml"
 BLOCK_SITES = task.BLOCK_POINTS
-HOLE_DEPTH = task.HOLE_DEPTH  # m, rim (top face of the walls) to the hole bottom
-NUB_TOP = 0.005  # m, height of the press-fit nubs above the rim (their radius)
+HOLE_DEPTH = task.HOLE_DEPTH  # m, rim (the top edge of the lead-in) to the hole bottom
+# m above the rim: where the joint-space line from C or D to q* is solved to cross the hole axis
+# (the lead-in chamfer starts at the rim)
+ENTRY_HEIGHT = 0.005
 INSERTED_DEPTH = task.INSERTED_FRACTION * task.HOLE_DEPTH  # m, the tip this far below the rim: inserted
 # Block yaw (rotation about the vertical) at q*: the block's faces are parallel to the walls for
 # any multiple of pi/2; -pi/2 is the one that leaves joint 6 nearest to zero (-0.34 rad).
@@ -117,7 +119,7 @@ def block_depth(m: mujoco.MjModel, q, d: mujoco.MjData | None = None) -> float:
     return float(hole_rim(m)[2] - _pose(m, d, q)[0][2])
 
 
-def _line_crossing(m, q0, q1, height=NUB_TOP, n=4001):
+def _line_crossing(m, q0, q1, height=ENTRY_HEIGHT, n=4001):
     """Tip offset from the hole axis where the joint-space line q0 -> q1 descends through
     ``height`` above the rim: (s, lateral offset [2], tilt+yaw error of link_6 [rad])."""
     d = mujoco.MjData(m)
@@ -126,13 +128,13 @@ def _line_crossing(m, q0, q1, height=NUB_TOP, n=4001):
         p, R = _pose(m, d, q0 + s * (q1 - q0))
         if p[2] - rim[2] <= height:
             return s, (p - rim)[:2], float(np.linalg.norm(_rot_error(R, rotz(YAW))))
-    raise ValueError("the joint-space line does not descend to the nubs")
+    raise ValueError("the joint-space line does not descend to the hole")
 
 
 def condition_pose(m: mujoco.MjModel, height: float, q_target=None, tol: float = 1e-4):
     """A condition at ``height`` above the rim, its lateral offset solved (secant/Newton on the
-    2-D crossing offset, finite differences) so that the joint-space line to q* passes the nub
-    tops within ``tol`` of the hole axis. Returns (q, offset [2])."""
+    2-D crossing offset, finite differences) so that the joint-space line to q* passes
+    ENTRY_HEIGHT above the rim within ``tol`` of the hole axis. Returns (q, offset [2])."""
     q_target = inserted_pose(m) if q_target is None else q_target
     off = np.zeros(2)
 
@@ -243,7 +245,7 @@ def scripted_insertion(m: mujoco.MjModel, q0: np.ndarray, q_target: np.ndarray, 
     * feedback: K from :func:`lqr_gains` at q_target (block-point cost), u = −K (x − x_ref);
     * feedforward: M(q_ref) q̈_ref (the reference's own acceleration) plus J_tip(q_ref)ᵀ·(0, 0,
       −F(t)), a downward push at the tip that ramps from 0 to ``push`` N over 5 steps once the
-      reference tip is 2 mm above the nub tops, and stays on.
+      reference tip is 7 mm above the rim, and stays on.
 
     Returns (K [T, 6, 12], k [T, 6]); torques are clipped by the plant.
     """
@@ -254,7 +256,7 @@ def scripted_insertion(m: mujoco.MjModel, q0: np.ndarray, q_target: np.ndarray, 
     qd_ref = np.gradient(q_ref, dt, axis=0)
     rim_z = hole_rim(m)[2]
     tip_z = np.array([_pose(m, d, q)[0][2] - rim_z for q in q_ref])
-    near = tip_z <= NUB_TOP + 0.002
+    near = tip_z <= ENTRY_HEIGHT + 0.002
     t_touch = int(np.argmax(near)) if np.any(near) else T  # no push if the reference stays high
     force = push * _smooth((np.arange(T) - t_touch) / 5.0)
     Ks, ks = np.empty((T, m.nu, 2 * m.nv)), np.empty((T, m.nu))
@@ -320,7 +322,7 @@ def main():
     rim = hole_rim(m)
     print(f"scene {SCENE}")
     print(f"hole rim centre (site hole_rim) [{rim[0]:.4f}, {rim[1]:.4f}, {rim[2]:.4f}] m; bottom {HOLE_DEPTH * 1e3:.0f} mm "
-          f"below; nub tops {NUB_TOP * 1e3:.0f} mm above. Joint angles: Kinova actuator angles, rad.")
+          f"below. Joint angles: Kinova actuator angles, rad.")
     q_star = inserted_pose(m)
     q_c, off_c = condition_pose(m, C_HEIGHT, q_star)
     q_d, off_d = condition_pose(m, D_HEIGHT, q_star)
@@ -340,7 +342,7 @@ def main():
         print(f"{name}: joint_2 {q[1]:.4f} in [{lo2:.4f}, {hi2:.4f}]: {lo2 < q[1] < hi2}; joint_3 {q[2]:.4f} in "
               f"[{lo3:.4f}, {hi3:.4f}]: {lo3 < q[2] < hi3}; collision-free: {collision_free(None, q)}; "
               f"tip Jacobian singular values {np.array2string(sv, precision=3)} m/rad"
-              + ("" if name == "q*" else f"; joint line to q* passes the nub tops at s = {s:.3f}, "
+              + ("" if name == "q*" else f"; joint line to q* passes {ENTRY_HEIGHT * 1e3:.0f} mm above the rim at s = {s:.3f}, "
                  f"{1e3 * np.linalg.norm(lat):.2f} mm off axis, orientation error {1e3 * rot:.1f} mrad"))
     print(f"|C - q*| = {np.linalg.norm(q_c - q_star):.3f} rad, |D - q*| = {np.linalg.norm(q_d - q_star):.3f} rad")
     print("\nScripted 20 Hz insertion (LQR point-cost feedback, joint-space reference to q*, "

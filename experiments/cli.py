@@ -25,7 +25,6 @@ from gmr_jax.sim import MJCFError
 # Fewest parallel rollouts for which "auto" picks MJX on a GPU. On an H100 in float64 a call of
 # 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
 # 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
-MJX_MIN_ROLLOUTS = 32
 # Iteration programs compiled at once (--compile-jobs): 2 and 4 were equally fast on an H100 and
 # 4 was slower on the 2-core CPU (benchmarks/RESULTS.md).
 DEFAULT_COMPILE_JOBS = 2
@@ -67,10 +66,13 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--first-seed", type=int, default=0, help="first seed (default: 0)")
     p.add_argument("--T", type=int, default=base.task.T, help="horizon (default: %(default)s)")
     p.add_argument("--backend", default="auto", choices=config.BACKENDS,
-                   help="physics backend (default: %(default)s: C MuJoCo on a CPU; on a GPU, MJX "
-                        f"when a rollout batch holds at least {MJX_MIN_ROLLOUTS} rollouts (seeds × "
-                        "conditions × samples), C MuJoCo below that, where MJX's per-step latency "
-                        "dominates; the choice is written to config.json)")
+                   help="physics backend (default: %(default)s: C MuJoCo on a CPU; on a GPU, "
+                        + (f"MJX when a rollout batch holds at least {task.mjx_min_rollouts} rollouts "
+                           "(seeds × conditions × samples), C MuJoCo below that, where MJX's "
+                           "per-step latency dominates" if task.mjx_min_rollouts is not None else
+                           "C MuJoCo too: MJX steps this scene's contacts slower at every measured "
+                           "batch size (benchmarks/RESULTS.md)")
+                        + "; the choice is written to config.json)")
     p.add_argument("--out", default=f"results/{task.name}", help="output folder (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest intact checkpoints in --out (same settings; a "
@@ -119,7 +121,8 @@ def _overrides(p: argparse.ArgumentParser, items: list[str]) -> dict:
 
 def resolve_backend(args, task: tasks.Task) -> str:
     """``--backend``: "auto" is "mujoco" on a CPU, and on a GPU "mjx" when the sampling batch
-    (seeds × conditions × samples, the largest scenario) reaches ``MJX_MIN_ROLLOUTS``."""
+    (seeds × conditions × samples, the largest scenario) reaches the task's
+    ``mjx_min_rollouts`` (never for a task without one)."""
     import jax
 
     if args.backend != "auto":
@@ -127,7 +130,9 @@ def resolve_backend(args, task: tasks.Task) -> str:
     if jax.default_backend() != "gpu":
         return "mujoco"
     conditions = max(len(task.scenarios[s]) for s in args.scenarios if s in task.scenarios)
-    return "mjx" if args.seeds * conditions * args.samples >= MJX_MIN_ROLLOUTS else "mujoco"
+    if task.mjx_min_rollouts is None:
+        return "mujoco"
+    return "mjx" if args.seeds * conditions * args.samples >= task.mjx_min_rollouts else "mujoco"
 
 
 def parse_args(task_name: str, argv=None, description: str | None = None) -> argparse.Namespace:

@@ -19,6 +19,9 @@ MJCF_DIR = pathlib.Path(__file__).resolve().parent.parent / "jaco_mjcf"
 SCENE = MJCF_DIR / "block_in_hole.xml"
 ARM_BODIES = ("base", "link_1", "link_2", "link_3", "link_4", "link_5", "link_6")
 BLOCK_SITES = ("block_tip", "block_tip_corner", "block_top")
+LEAD_IN = 0.008  # m, width and height of the 45° chamfer (MJCF comment)
+NUB_DEPTH = 0.012  # m, the nubs' centres below the rim
+INTERFERENCE = 5e-5  # m, how far each nub reaches into the block's outline
 
 
 @pytest.fixture(scope="module")
@@ -68,8 +71,8 @@ def test_scene_loads_through_make_sim():
     assert np.all(m.geom_contype == 0) and np.all(m.geom_conaffinity == 0)
     pairs = {(m.geom(m.pair_geom1[i]).name, m.geom(m.pair_geom2[i]).name) for i in range(m.npair)}
     nubs = {f"nub_{s}{k}" for s in ("px", "nx", "py", "ny") for k in (0, 1)}
-    expected = {tuple(sorted(("block_geom", g))) for g in
-                nubs | {"wall_px", "wall_nx", "wall_py", "wall_ny", "bottom", "table"}}
+    walls = {f"{kind}_{s}" for kind in ("wall", "chamfer") for s in ("px", "nx", "py", "ny")}
+    expected = {tuple(sorted(("block_geom", g))) for g in nubs | walls | {"bottom", "table"}}
     expected.add(tuple(sorted(("hand_geom", "table"))))
     assert {tuple(sorted(p)) for p in pairs} == expected
 
@@ -142,7 +145,8 @@ def _relative_pose(m, d):
 
 
 def test_documented_geometry(m):
-    """Clearance, interference, depth and placement as the MJCF comment and the README state."""
+    """Clearance, lead-in, interference, depth and placement as the MJCF comment and the README
+    state."""
     half = m.geom("block_geom").size
     np.testing.assert_allclose(half, [0.02, 0.02, 0.04])
     pos, size = geom_box(m, "wall_px")
@@ -152,7 +156,7 @@ def test_documented_geometry(m):
         p, s = geom_box(m, name)
         axis = 0 if name.endswith("x") else 1
         assert abs(p[axis]) - s[axis] - half[0] == pytest.approx(clearance, abs=1e-12)
-        assert p[2] + s[2] == pytest.approx(0.0, abs=1e-12)  # wall tops in the rim plane
+        assert p[2] + s[2] == pytest.approx(-LEAD_IN, abs=1e-12)  # wall tops at the lead-in's foot
     p, s = geom_box(m, "bottom")
     assert p[2] + s[2] == pytest.approx(-bp.HOLE_DEPTH, abs=1e-12)
     # The fixture stands on the table, whose top is the base plane z = 0.
@@ -160,14 +164,38 @@ def test_documented_geometry(m):
     np.testing.assert_allclose(rim, [0.0, -0.45, 0.10], atol=1e-12)
     assert rim[2] + p[2] - s[2] == pytest.approx(0.0, abs=1e-12)
     assert m.geom("table").pos[2] + m.geom("table").size[2] == pytest.approx(0.0, abs=1e-12)
-    # Nubs: radius 5 mm, centres in the rim plane, 0.2 mm into the block's outline.
+    # Lead-in: each chamfer bar has a 45° face from the rim, LEAD_IN out from the wall's inner
+    # face, down to that face at the wall's top; its other faces lie in the wall or slope
+    # outwards from the rim (the lip).
+    wall_face = half[0] + clearance
+    for side in ("px", "nx", "py", "ny"):
+        g = m.geom(f"chamfer_{side}")
+        axis = 0 if side[1] == "x" else 1
+        sign = 1.0 if side[0] == "p" else -1.0
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, g.quat)
+        R = R.reshape(3, 3)
+        # the corners of the bar's cross-section in the plane (axis, z)
+        corners = [g.pos + R @ (np.array([a, b, c]) * g.size) for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)]
+        radial = sorted({round(sign * c[axis], 9) for c in corners})
+        heights = sorted({round(c[2], 9) for c in corners})
+        np.testing.assert_allclose(radial, [wall_face, wall_face + LEAD_IN, wall_face + 2 * LEAD_IN], atol=1e-8)
+        np.testing.assert_allclose(heights, [-2 * LEAD_IN, -LEAD_IN, 0.0], atol=1e-8)
+        innermost = min(corners, key=lambda c: sign * c[axis])
+        top = max(corners, key=lambda c: c[2])
+        assert innermost[2] == pytest.approx(-LEAD_IN, abs=1e-8) and sign * top[axis] == pytest.approx(wall_face + LEAD_IN, abs=1e-8)
+    # Nubs: radius 5 mm, 0.05 mm into the block's outline, NUB_DEPTH below the rim (below the
+    # lead-in's foot, so the walls align the block before it meets them).
     for side in ("px", "nx", "py", "ny"):
         for k in (0, 1):
             g = m.geom(f"nub_{side}{k}")
-            assert g.type[0] == mujoco.mjtGeom.mjGEOM_SPHERE and g.size[0] == pytest.approx(bp.NUB_TOP)
+            assert g.type[0] == mujoco.mjtGeom.mjGEOM_SPHERE and g.size[0] == pytest.approx(0.005)
             axis = 0 if side[1] == "x" else 1
-            assert g.pos[2] == 0.0
-            assert half[0] - (abs(g.pos[axis]) - g.size[0]) == pytest.approx(2e-4, abs=1e-12)
+            assert g.pos[2] == pytest.approx(-NUB_DEPTH, abs=1e-12)
+            # the cap that stands out of the wall face lies wholly below the lead-in's foot
+            cap = np.sqrt(g.size[0] ** 2 - (abs(g.pos[axis]) - wall_face) ** 2)
+            assert g.pos[2] + cap < -LEAD_IN
+            assert half[0] - (abs(g.pos[axis]) - g.size[0]) == pytest.approx(INTERFERENCE, abs=1e-12)
             assert abs(g.pos[1 - axis]) == pytest.approx(0.012)
 
 
@@ -175,18 +203,19 @@ def test_documented_geometry(m):
 # The press fit and the walls
 
 
-def _cartesian_push(m, d, force, hold_xy):
+def _cartesian_push(m, d, force, hold_xy, k_xy=3000.0):
     """Joint torques for a Cartesian controller at the physics rate: the given force at the
-    block tip plus springs that hold the tip's horizontal position at hold_xy (3000 N/m) and
-    link_6's orientation vertical and yaw-aligned (60 N·m/rad), with damping. The vertical
-    component of ``force`` is applied as is (no vertical spring or damper)."""
+    block tip plus springs that hold the tip's horizontal position at hold_xy (``k_xy`` N/m,
+    3000 stiff, a few hundred compliant like an arm under a learned controller) and link_6's
+    orientation vertical and yaw-aligned (60 N·m/rad), with damping. The vertical component of
+    ``force`` is applied as is (no vertical spring or damper)."""
     jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
     mujoco.mj_jacSite(m, d, jp, jr, m.site("block_tip").id)
     p = d.site("block_tip").xpos
     R = d.body("link_6").xmat.reshape(3, 3)
     v, w = jp @ d.qvel, jr @ d.qvel
     f = np.array(force, dtype=np.float64)
-    f[:2] += 3000.0 * (hold_xy - p[:2]) - 400.0 * v[:2]
+    f[:2] += k_xy * (hold_xy - p[:2]) - (0.4 / 3.0) * k_xy * v[:2]
     moment = 60.0 * bp._rot_error(R, bp.rotz(bp.YAW)) - 20.0 * w
     u = jp.T @ f + jr.T @ moment
     lim = m.actuator_ctrlrange[:, 1]
@@ -194,31 +223,56 @@ def _cartesian_push(m, d, force, hold_xy):
     return u
 
 
-def _push_down(m, force, seconds=4.0):
+def _push_down(m, force, seconds=4.0, offset=(0.0, 0.0), k_xy=3000.0):
     """Depth (m below the rim) of the block tip after pushing straight down with ``force`` N,
-    starting at rest with the tip 2 mm above the rim, centred and aligned."""
+    starting at rest, aligned, with the tip 2 mm above the rim and ``offset`` [2] (m) beside
+    the hole axis, where the horizontal spring of stiffness ``k_xy`` holds it."""
     d = mujoco.MjData(m)
     rim = bp.hole_rim(m)
-    d.qpos[:] = bp.tip_pose(m, (0.0, 0.0, 0.002))
+    d.qpos[:] = bp.tip_pose(m, (offset[0], offset[1], 0.002))
     mujoco.mj_forward(m, d)
+    hold = rim[:2] + np.asarray(offset)
     for _ in range(int(round(seconds / m.opt.timestep))):
-        d.ctrl[:] = _cartesian_push(m, d, (0.0, 0.0, -force), rim[:2])
+        d.ctrl[:] = _cartesian_push(m, d, (0.0, 0.0, -force), hold, k_xy)
         mujoco.mj_step(m, d)
     return rim[2] - d.site("block_tip").xpos[2]
 
 
+def _without_nubs(m):
+    """The scene with the nubs' contact pairs removed (the press fit off, walls as they are)."""
+    spec = mujoco.MjSpec.from_file(str(SCENE))
+    for p in list(spec.pairs):
+        if p.geomname2.startswith("nub_"):
+            spec.delete(p)
+    return spec.compile()
+
+
 def test_press_fit_needs_the_documented_force(m):
-    """README: at <= 4 N the block rests on the nubs; it enters from 5-7 N; at >= 15 N it
-    reaches the bottom within 4 s; in between it goes in part of the way (about 1.5 mm/s per
-    newton above ~5 N). Forces are held at the tip for 4 s (the task's horizon)."""
-    assert _push_down(m, 3.0) < 0.0  # still on the nubs (they hold the tip 1.1 mm above the rim)
-    partial = _push_down(m, 10.0)
-    assert 0.005 < partial < bp.INSERTED_DEPTH  # measured 29 mm
-    full = _push_down(m, 20.0)
-    assert full >= bp.INSERTED_DEPTH  # on the bottom (50 mm) after 1.9 s
+    """README: a light press fit. Pushed straight down for 4 s (the task's horizon), the block
+    rests on the nubs at 0.15 N (tip about 12 mm deep, at the nubs), passes them part of the way
+    at 0.3 N and reaches the bottom at 1 N; without the nubs 0.3 N already takes it most of the
+    way down: the resistance is the nubs'."""
+    assert _push_down(m, 0.15) < NUB_DEPTH + 0.001  # held at the nubs (measured 11.8 mm)
+    partial = _push_down(m, 0.3)
+    assert NUB_DEPTH + 0.002 < partial < bp.INSERTED_DEPTH - 0.01  # measured 17.4 mm
+    full = _push_down(m, 1.0)
+    assert full >= bp.INSERTED_DEPTH  # on the bottom
     # The bottom stops it: the tip is no deeper than the hole plus the rigid contact's
     # penetration bound of the next test (well under a millimetre).
     assert full < bp.HOLE_DEPTH + 1e-3
+    assert _push_down(_without_nubs(m), 0.3) > partial + 0.015  # measured 49.9 mm
+
+
+@pytest.mark.parametrize("offset, force", [((0.006, 0.0), 2.0), ((0.004, 0.004), 5.0)])
+def test_lead_in_guides_an_offset_block_into_the_hole(m, offset, force):
+    """The chamfer turns a downward push into a sideways one: a block 6 mm beside the axis, held
+    there by a compliant 300 N/m horizontal spring (which pulls it back with up to 1.8 N), is
+    pushed into the hole by 2 N; 4 mm off in x and in y, its corner in the crease where two
+    chamfers meet, it needs 5 N (2 N leaves it there, 7 mm deep). 12 mm off (the block's far
+    edge beyond the ridge of the lip, 8 mm out) it rests on the ridge, its tip in the rim plane
+    up to the contact's penetration."""
+    assert _push_down(m, force, offset=offset, k_xy=300.0) >= bp.INSERTED_DEPTH
+    assert _push_down(m, 2.0, offset=(0.012, 0.0), k_xy=300.0) < 1e-4
 
 
 def _penetration_bound(m, d, force, pair_class_geom):
@@ -248,8 +302,8 @@ def test_walls_bound_the_penetration(m, case):
     d = mujoco.MjData(m)
     F = 40.0 if case == "down_on_fixture_top" else 20.0
     if case == "down_on_fixture_top":
-        # tip over the +x wall's top, clear of the nubs
-        q0, force, walls = bp.tip_pose(m, (0.0403, 0.040, 0.001)), np.array([0.0, 0.0, -F]), ("wall_px", "wall_py")
+        # the tip over the hole's +x+y corner, the block's face on the ridges of two lead-in bars
+        q0, force, walls = bp.tip_pose(m, (0.0403, 0.040, 0.001)), np.array([0.0, 0.0, -F]), ("chamfer_px", "chamfer_py")
     else:
         q0, force, walls = bp.tip_pose(m, (0.0, 0.0, -0.045)), np.array([F, 0.0, 0.0]), ("wall_px",)
     d.qpos[:] = q0
@@ -307,7 +361,7 @@ def test_inserted_pose_and_conditions(m, poses):
 
 def test_collision_free_sees_block_hand_and_fixture(m, poses):
     assert bp.collision_free(SCENE, poses["C"]) and bp.collision_free(m, poses["C"])
-    assert not bp.collision_free(SCENE, poses["q*"])  # pressed into the nubs (0.2 mm)
+    assert not bp.collision_free(SCENE, poses["q*"])  # pressed into the nubs (0.05 mm)
     assert not bp.collision_free(m, poses["q*"])
     # the block 10 mm into the fixture top beside the hole
     assert not bp.collision_free(SCENE, bp.tip_pose(m, (0.04, 0.04, -0.01)))
@@ -382,8 +436,9 @@ def test_mujoco_and_mjx_agree_in_contact(m):
 
 
 def _wall_contact_steps(m, q0, Ks, ks):
-    """Number of control steps of the C MuJoCo rollout in which the block touches a wall."""
-    walls = {m.geom(f"wall_{s}").id for s in ("px", "nx", "py", "ny")}
+    """Number of control steps of the C MuJoCo rollout in which the block touches a wall or the
+    lead-in (box-box contacts)."""
+    walls = {m.geom(f"{kind}_{s}").id for kind in ("wall", "chamfer") for s in ("px", "nx", "py", "ny")}
     d = mujoco.MjData(m)
     d.qpos[:] = q0
     mujoco.mj_forward(m, d)

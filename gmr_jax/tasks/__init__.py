@@ -52,6 +52,9 @@ class Task(NamedTuple):
       sweep_radii: the default radii of the disturbance sweep; sweep_per_radius: states per
         radius and condition.
       paper_robustness: (scenario, algorithm) -> the paper's successes out of 50.
+      mjx_min_rollouts: on a GPU, the rollout batch (seeds × conditions × samples) from which
+        MJX steps this task's scene faster than C MuJoCo on the host, by measurement
+        (benchmarks/RESULTS.md); None where MJX is slower at every measured batch (contacts).
     """
 
     name: str
@@ -69,6 +72,7 @@ class Task(NamedTuple):
     sweep_radii: tuple[float, ...]
     sweep_per_radius: int
     paper_robustness: Mapping[tuple[str, str], int]
+    mjx_min_rollouts: int | None = 32
 
 
 def get(name: str) -> Task:
