@@ -243,6 +243,12 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
             lines.append(f"- {_label(algorithm, curve)}: final-state MSE < {thr} at the last iteration "
                          f"for {int((final < thr).sum())}/{len(final)} seeds "
                          f"(< {thr2}: {int((final < thr2).sum())}/{len(final)}).")
+        failed = run["history"].get("seed_failed")
+        if failed is not None and failed[-1].any():
+            first = failed.argmax(axis=0)  # [S]: the iteration index at which each seed failed
+            lines.append("- Failed seeds, frozen at their last good iteration (its rows and policy count "
+                         "for them from then on): " + ", ".join(
+                             f"seed {seeds[i]} in iteration {first[i] + 1}" for i in np.flatnonzero(failed[-1])) + ".")
         for name, ok in final_extra(cfg, run["history"]).items():
             per_cond = ok[-1].sum(axis=0)  # [M]: seeds at the last iteration
             conds = task.scenarios[scenario]

@@ -322,8 +322,11 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
       ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies once every
       iteration is done, ``robustness`` and ``sweep``.
     Raises:
-      TrainingError: non-finite values or a failed η search; the checkpoints of the iterations
-        before are intact. Interrupted: the scheduler's stop was requested (checkpoint written).
+      TrainingError: non-finite values or a failed η search in the first iteration or for every
+        seed still running; the checkpoints of the iterations before are intact. A seed that fails
+        while others go on is frozen instead: its state and metrics stay those of its last good
+        iteration, the metric ``seed_failed`` [S] marks it from then on, and a message event
+        names it. Interrupted: the scheduler's stop was requested (checkpoint written).
       checkpoint.CheckpointError: a checkpoint cannot be written or belongs to other settings.
     """
     if scheduler is None:
@@ -404,6 +407,26 @@ def _failure(cfg: config.Config, it: int, metrics: dict, ckpt_dir: pathlib.Path)
         "are intact (try --precision float64, or other settings)")
 
 
+def _seed_ok(metrics: dict) -> np.ndarray:
+    """[S] bool: the seed's iteration succeeded for every condition."""
+    ok = np.asarray(metrics["ok"])
+    return ok.reshape(ok.shape[0], -1).all(axis=1)
+
+
+def _freeze(frozen: np.ndarray, new_state, state, metrics: dict, last: dict, layout: _Layout):
+    """The failed seeds (``frozen`` [S]) keep their state and metrics of the last iteration; the
+    others take the new ones. Returns (state, metrics)."""
+    keep = layout.device(jnp.asarray(~frozen))
+
+    def pick(new, old):
+        return jnp.where(keep.reshape(keep.shape + (1,) * (new.ndim - 1)), new, old)
+
+    new_state = jax.tree_util.tree_map(pick, new_state, state)
+    metrics = {k: np.where(frozen.reshape(frozen.shape + (1,) * (np.ndim(v) - 1)), np.asarray(last[k]), v)
+               if k in last else v for k, v in metrics.items()}
+    return new_state, metrics
+
+
 def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout: _Layout, timer, scheduler,
                 progress_fn, label, t0):
     """Iterations ``len(history) … stop − 1``; each iteration's checkpoint is written while the
@@ -429,8 +452,19 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
                 save(*job)
             metrics = _host(layout.real(metrics))
             iteration_s.append(time.perf_counter() - t_it)
-            if not np.all(metrics["ok"]):
+            failed = np.asarray(history[-1]["seed_failed"]) if history and "seed_failed" in history[-1] \
+                else np.zeros(layout.num, bool)
+            frozen = failed | ~_seed_ok(metrics)
+            if frozen.all() or (frozen.any() and not history):
                 raise _failure(cfg, it + 1, metrics, ckpt_dir)
+            if frozen.any():
+                for i in np.flatnonzero(frozen & ~failed):
+                    if progress_fn is not None:
+                        progress_fn({"run": label, "message": (
+                            f"seed {meta['seeds'][i]} failed in iteration {it + 1} (non-finite values or η "
+                            f"at its limit); it stays at iteration {it} while the other seeds go on")})
+                new_state, metrics = _freeze(frozen, new_state, state, metrics, history[-1], layout)
+            metrics["seed_failed"] = frozen
             state = new_state
             history.append(metrics)
             pending = (it + 1, state, list(history))

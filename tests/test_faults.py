@@ -4,6 +4,7 @@ was written before, and a resumed run continues correctly.
 | fault | what must happen | test |
 | --- | --- | --- |
 | NaN from the plant in the middle of a run | TrainingError naming the iteration; earlier checkpoints intact | test_nan_from_the_plant_stops_the_run |
+| NaN from the plant for one seed of several | that seed frozen at its last good iteration and named; the others run on unchanged | test_a_failed_seed_is_frozen_while_the_others_go_on |
 | a checkpoint write that fails half-way | CheckpointError; the previous checkpoint intact, resume continues | test_failed_checkpoint_write_keeps_the_previous_one |
 | stop request (Ctrl-C, SIGTERM) | the iteration in flight finishes and is checkpointed; resume equals an uninterrupted run | test_stop_request_checkpoints_and_resumes |
 | the process killed (kill -9) between iterations | resume equals an uninterrupted run | test_runner.py::test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one |
@@ -19,6 +20,7 @@ import os
 import shutil
 import signal
 
+import jax
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
@@ -62,6 +64,47 @@ def test_nan_from_the_plant_stops_the_run(cfg, whole, scheduler, monkeypatch):
         runner.run(cfg, SEEDS, root / "nan", scheduler=scheduler, progress_fn=first_iteration_then_nan)
     assert checkpoint.all_steps(root / "nan" / "checkpoints") == [1]
     checkpoint.restore(root / "nan" / "checkpoints", runner.initial_state(cfg, SEEDS))  # intact
+
+
+def test_a_failed_seed_is_frozen_while_the_others_go_on(cfg, whole, scheduler, monkeypatch):
+    root, result = whole
+    clean = sim._HostStepper.rollout
+
+    def nan_for_second_seed(self, x0, *args, **kwargs):
+        X, U, xT = clean(self, x0, *args, **kwargs)
+        if x0.ndim >= 2 and x0.shape[0] == len(SEEDS):  # the seed axis leads (vmap over seeds)
+            X, xT = X.copy(), xT.copy()
+            X[1], xT[1] = np.nan, np.nan
+        return X, U, xT
+
+    messages = []
+
+    def after_first_iteration(event):
+        messages.append(event.get("message"))
+        if event.get("iteration") == 1:
+            monkeypatch.setattr(sim._HostStepper, "rollout", nan_for_second_seed)
+
+    out = runner.run(cfg, SEEDS, root / "one_nan", scheduler=scheduler, progress_fn=after_first_iteration)
+    hist, ref = out["history"], result["history"]
+    np.testing.assert_array_equal(hist["seed_failed"], [[False, False], [False, True], [False, True]])
+    assert any(m and "seed 1 failed in iteration 2" in m for m in messages)
+    for name, value in ref.items():
+        if name == "seed_failed":
+            continue
+        # seed 0 as in the run without the fault; seed 1 repeats its iteration-1 metrics
+        np.testing.assert_array_equal(hist[name][:, 0], value[:, 0], err_msg=name)
+        np.testing.assert_array_equal(hist[name][1:, 1], np.broadcast_to(value[0, 1], hist[name][1:, 1].shape),
+                                      err_msg=name)
+    # the frozen seed's final state is its state after iteration 1
+    template = runner.initial_state(cfg, SEEDS)
+    first, _ = checkpoint.restore(root / "one_nan" / "checkpoints", template, step=1)
+    final, _ = checkpoint.restore(root / "one_nan" / "checkpoints", template, step=3)
+
+    def raw(leaf):
+        return np.asarray(jax.random.key_data(leaf) if jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key) else leaf)
+
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(final)):
+        np.testing.assert_array_equal(raw(a)[1], raw(b)[1])
 
 
 def test_failed_checkpoint_write_keeps_the_previous_one(cfg, whole, scheduler, monkeypatch):
