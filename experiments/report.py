@@ -11,7 +11,7 @@ import pathlib
 
 import numpy as np
 
-from gmr_jax import tasks
+from gmr_jax import stats, tasks
 from gmr_jax.runner import jsonable
 
 # Per-iteration learning-curve entries, in the order they are reported.
@@ -50,6 +50,8 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                 rec["final_state_mse"] = rec["final_state_mse_policy"]
             for name, ok in extra.items():
                 rec[name + "_per_condition"] = jsonable(ok[:, i])
+            if "stability" in run:
+                rec["stability"] = {k: float(v[i]) for k, v in run["stability"].items()}
             if "robustness" in run:
                 rob = run["robustness"]
                 rec["robustness"] = {
@@ -70,6 +72,9 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], **r.get("timing", {}),
                                        "iteration_s": list(r.get("iteration_s", []))}
                           for (s, a), r in runs.items()},
+               "robustness_stats": {k: {m: {f: None if isinstance(x, float) and np.isnan(x) else x
+                                                for f, x in v._asdict().items()} for m, v in row.items()}
+                                    for k, row in robustness_stats(runs).items()},
                "runs": records}
     (out / "results.json").write_text(json.dumps(results, indent=1))
     return results
@@ -204,10 +209,47 @@ def _task(configs) -> tasks.Task:
 
 
 def plot_all(out: pathlib.Path, configs, runs) -> None:
-    """The study's figures: learning curves, paths, robustness."""
+    """The study's figures: learning curves, paths, robustness, per-seed successes."""
     plot_learning_curves(out / "learning_curves.png", configs, runs)
     plot_paths(out / "paths.png", configs, runs)
     plot_robustness(out / "robustness.png", configs, runs)
+    plot_seed_successes(out / "seeds.png", configs, runs)
+
+
+def plot_seed_successes(path: pathlib.Path, configs, runs) -> None:
+    """Successes from the random states per seed (dots), their mean with the 95 % bootstrap
+    interval (bar), the IQM (diamond) and the paper's count (star), one column per run."""
+    keys = [k for k in runs if "robustness" in runs[k]]
+    if not keys:
+        return
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    task = _task(configs)
+    fig, ax = plt.subplots(figsize=(1.6 * len(keys) + 2.5, 4.2))
+    jitter = np.random.default_rng(0)
+    for i, key in enumerate(keys):
+        counts = np.asarray(runs[key]["robustness"]["success"]).sum(axis=-1)
+        st = stats.over_seeds(counts)
+        color = "tab:blue" if key[1] == "gmr" else "tab:orange"
+        ax.plot(i + jitter.uniform(-0.15, 0.15, counts.size), counts, "o", color=color, alpha=0.5, ms=4)
+        if st.n > 1:
+            ax.errorbar(i + 0.3, st.mean, yerr=[[st.mean - st.low], [st.high - st.mean]], fmt="o", color="k",
+                        capsize=4)
+        ax.plot(i + 0.3, st.iqm, "D", color="k", mfc="none", ms=6)
+        paper = task.paper_robustness.get(key)
+        if paper is not None:
+            ax.plot(i + 0.45, paper, "*", color="tab:red", ms=11)
+    ax.set_xticks(range(len(keys)), [f"{', '.join(task.scenarios[s])}\n{a.upper()}" for s, a in keys])
+    n = np.asarray(runs[keys[0]]["robustness"]["success"]).shape[-1]
+    ax.set_ylim(-1, n + 1)
+    ax.set_ylabel(f"successes of {n} random states")
+    ax.set_title("per seed (dots); mean, 95 % bootstrap CI (bar); IQM (◇); paper (★)", fontsize=9)
+    ax.grid(True, axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, results) -> None:
@@ -273,13 +315,30 @@ def imitation_iteration(run) -> int | None:
     return next((i + 1 for i in range(len(ok)) if ok[i:].all()), None)
 
 
+def robustness_stats(runs) -> dict:
+    """{"scenario/algorithm": {"success": SeedStats, "success_loose": …, <extra>: …}} of the
+    runs with a robustness evaluation: successes out of the random states, over seeds."""
+    out = {}
+    for (s, a), run in runs.items():
+        rob = run.get("robustness")
+        if rob is None:
+            continue
+        row = {k: stats.over_seeds(np.asarray(rob[k]).sum(axis=-1)) for k in ("success", "success_loose")}
+        for name, ok in rob.get("extra", {}).items():
+            row[name] = stats.over_seeds(np.asarray(ok).sum(axis=-1))
+        out[f"{s}/{a}"] = row
+    return out
+
+
 def robustness_table(task: tasks.Task, runs) -> list[str]:
-    """Markdown rows: our successes (mean and range over seeds) next to the paper's."""
+    """Markdown rows: our successes (mean with its 95 % bootstrap interval over seeds, IQM and
+    range; gmr_jax.stats) next to the paper's."""
     scenarios = sorted({s for s, a in runs if "robustness" in runs[(s, a)]}, key=lambda s: (len(s), s))
     if not scenarios:
         return []
     algs = [a for a in ("mdgps", "gmr") if any((s, a) in runs for s in scenarios)]
-    head = "| trained on | " + " | ".join(f"{a.upper()} ours (mean, range) | {a.upper()} paper" for a in algs) + " |"
+    head = "| trained on | " + " | ".join(
+        f"{a.upper()} ours (mean [95 % CI], IQM (range)) | {a.upper()} paper" for a in algs) + " |"
     lines = ["## Robustness: 50 random initial states, success = final-state MSE < 0.01", "",
              head, "|---|" + "---|---|" * len(algs)]
     for scen in scenarios:
@@ -289,16 +348,27 @@ def robustness_table(task: tasks.Task, runs) -> list[str]:
             if run is None or "robustness" not in run:
                 cells += ["–", "–"]
                 continue
-            succ = run["robustness"]["success"].sum(axis=-1)
             n = run["robustness"]["success"].shape[-1]
             paper = task.paper_robustness.get((scen, a))
-            cells += [f"{succ.mean():.1f}/{n} ({succ.min()}–{succ.max()})",
+            cells += [f"{stats.over_seeds(run['robustness']['success'].sum(axis=-1)).format()} of {n}",
                       "–" if paper is None else f"{paper}/50"]
         lines.append(f"| {', '.join(task.scenarios[scen])} | " + " | ".join(cells) + " |")
     lines.append("")
     lines.append("Loose threshold 0.1 (the paper's text): " + "; ".join(
         f"{s}/{a}: {runs[(s, a)]['robustness']['success_loose'].sum(axis=-1).mean():.1f}"
         for s in scenarios for a in algs if (s, a) in runs and "robustness" in runs[(s, a)]) + ".")
+    stable = [(s, a) for s in scenarios for a in algs if "stability" in runs.get((s, a), {})]
+    if stable:
+        lines += ["", "Local stability of the closed loop x' = f(x, u(x)) (spectral radius ρ of its "
+                  "Jacobian; < 1 contracts): ρ at the target, median ρ along the rollouts from the "
+                  "random states, and the fraction of rollout states with ρ < 1 (mean [95 % CI] over "
+                  "seeds):", "", "| run | ρ at the target (median over seeds) | median ρ along rollouts | "
+                  "contracting states |", "|---|---|---|---|"]
+        for s, a in stable:
+            st = runs[(s, a)]["stability"]
+            lines.append(f"| {s}/{a} | {np.median(st['target_radius']):.3f} | {np.median(st['median_radius']):.3f} | "
+                         f"{stats.over_seeds(st['contracting']).format(2)} |")
+        lines.append("")
     names = sorted({n for r in runs.values() for n in r.get("robustness", {}).get("extra", {})})
     for name in names:
         lines.append(f"Also {name} (mean over seeds): " + "; ".join(

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import sys
 from typing import Any
 
@@ -251,8 +252,10 @@ def _rebuild(entry: dict, arr: np.ndarray, leaf):
 def _quiet_closed_event_loop() -> None:
     """After a failed read, tensorstore still delivers callbacks to the asyncio loop that orbax
     has already closed; each would print a "RuntimeError: Event loop is closed" traceback on
-    stderr after the one clear CorruptCheckpointError. Drop exactly those (every other
-    unraisable exception still reaches the current hook)."""
+    stderr beside the one clear CorruptCheckpointError. Drop exactly those (every other
+    unraisable exception still reaches the current hook). Installed before every array read:
+    installed after the failure, the first callbacks could come before it (seen on a loaded
+    2-core machine)."""
     hook = sys.unraisablehook
     if getattr(hook, "_gmr_jax_quiet", False):
         return
@@ -264,6 +267,23 @@ def _quiet_closed_event_loop() -> None:
         hook(unraisable)
     quiet._gmr_jax_quiet = True
     sys.unraisablehook = quiet
+
+
+class _OrphanedTaskFilter(logging.Filter):
+    """Drops asyncio's "Task exception was never retrieved" records: after a failed read, the
+    read's other tasks fail too and are collected unawaited, each logging a traceback of the
+    same corruption."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Task exception was never retrieved")
+
+
+def _quiet_orphaned_read_tasks() -> None:
+    """Installs :class:`_OrphanedTaskFilter` on the asyncio logger (once), after a failed read:
+    the one CorruptCheckpointError says what happened."""
+    log = logging.getLogger("asyncio")
+    if not any(isinstance(f, _OrphanedTaskFilter) for f in log.filters):
+        log.addFilter(_OrphanedTaskFilter())
 
 
 def _read_meta(manager, step: int, where: str, hint: str) -> dict:
@@ -349,11 +369,13 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
         targets = {_leaf_name(i): np.zeros(e["shape"], np.dtype(e["dtype"]))
                    for i, e in enumerate(entries) if int(np.prod(e["shape"]))}
         if targets:
+            # before the read: a failing read's late callbacks can arrive before its exception
+            _quiet_closed_event_loop()
             try:
                 arrays = manager.restore(step, args=ocp.args.Composite(
                     **{_STATE: ocp.args.StandardRestore(targets)}))[_STATE]
             except Exception as err:
-                _quiet_closed_event_loop()
+                _quiet_orphaned_read_tasks()
                 raise CorruptCheckpointError(f"{where} is corrupt: its arrays cannot be read "
                                       f"({type(err).__name__}: {err}){hint}") from err
         else:

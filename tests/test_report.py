@@ -49,12 +49,23 @@ def test_results_summary_and_figures(tmp_path):
     report.write_summary(tmp_path / "summary.md", configs, runs, [0, 1], "cpu: test", 12.0, results)
     text = (tmp_path / "summary.md").read_text()
     assert text.startswith("# Reach study summary")
-    assert "| A | 1.0/50 (0–2) | 12/50 | 38.5/50 (27–50) | 50/50 |" in text
-    assert "| A, B | 3.5/50 (3–4) | 50/50 | 50.0/50 (50–50) | 50/50 |" in text
+    # Two seeds: a quarter of the bootstrap resamples repeat the smaller value, a quarter the
+    # larger, so the 95 % percentile interval is [min, max]; the IQM of two values is their mean.
+    assert ("| A | 1.0 [0.0, 2.0], IQM 1.0 (0–2) of 50 | 12/50 | 38.5 [27.0, 50.0], IQM 38.5 (27–50) of 50 "
+            "| 50/50 |") in text
+    assert ("| A, B | 3.5 [3.0, 4.0], IQM 3.5 (3–4) of 50 | 50/50 | 50.0 [50.0, 50.0], IQM 50.0 (50–50) of 50 "
+            "| 50/50 |") in text
+    st = again["robustness_stats"]["A/gmr"]["success"]
+    assert (st["n"], st["mean"], st["low"], st["high"], st["iqm"]) == (2, 38.5, 27.0, 50.0, 38.5)
     assert "13.0 s for the whole command" in text
     assert text.count("from iteration 2") == 4  # the imitation rule on the synthetic curves
+    runs[("A", "gmr")]["stability"] = {"target_radius": np.array([0.9, 0.95]), "median_radius": np.array([0.8, 1.2]),
+                                       "contracting": np.array([1.0, 0.5])}
+    report.write_summary(tmp_path / "summary.md", configs, runs, [0, 1], "cpu: test", 12.0, results)
+    text = (tmp_path / "summary.md").read_text()
+    assert "| A/gmr | 0.925 | 1.000 | 0.75 [0.50, 1.00], IQM 0.75 (0.5–1) |" in text
     report.plot_all(tmp_path, configs, runs)
-    for name in ("learning_curves.png", "paths.png", "robustness.png"):
+    for name in ("learning_curves.png", "paths.png", "robustness.png", "seeds.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
 
 
@@ -68,3 +79,20 @@ def test_compare_names_the_differing_fields():
     lines = compare.compare(same, other)
     assert lines[0] == "only in the second: ('A', 'gmr', 1)"
     assert lines[1] == "A/gmr/0 kl: largest relative difference 0.1"
+
+
+def test_intervals_cli_reads_a_results_json(tmp_path, capsys):
+    from experiments import intervals
+
+    recs = [{"scenario": "A", "algorithm": "gmr", "seed": s, "robustness": {"successes": k, "states": 50}}
+            for s, k in enumerate([50, 27])]
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"runs": recs}))
+    assert intervals.main([str(path)]) == 0
+    assert "| A/gmr | successes | 2 | 38.5 [27.0, 50.0], IQM 38.5 (27–50) |" in capsys.readouterr().out
+    (tmp_path / "bad.json").write_text("{")
+    import pytest
+
+    with pytest.raises(SystemExit) as exc:
+        intervals.main([str(tmp_path / "bad.json")])
+    assert exc.value.code == 2 and "cannot read a results.json" in capsys.readouterr().err
