@@ -81,10 +81,6 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="floating-point precision of the whole run (default: %(default)s; float32 "
                         "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
-    p.add_argument("--stability", action="store_true",
-                   help="also measure each policy's local closed-loop stability (spectral radius of "
-                        "the closed loop's Jacobian at the target and along the rollouts from the "
-                        "random states; gmr_jax.stability; MJX derivatives, slow on a CPU)")
     p.add_argument("--jobs", type=_nonnegative_int, default=0,
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
@@ -211,26 +207,6 @@ def _stop_on_signals(scheduler: runner.Scheduler):
         signal.signal(sig, handler)
 
 
-def add_stability(configs, runs) -> None:
-    """``runs[key]["stability"]``: per seed the closed loop's spectral radius at the target,
-    the median along the rollouts and the fraction of rollout states where it contracts."""
-    import jax
-    import numpy as np
-
-    from gmr_jax import stability
-
-    for key, run in runs.items():
-        params = run.get("policy_params")
-        if params is None or "robustness" not in run:
-            continue
-        seeds = jax.tree_util.tree_leaves(params)[0].shape[0]
-        per_seed = [stability.stability(configs[key], jax.tree_util.tree_map(lambda a: a[i], params))
-                    for i in range(seeds)]
-        run["stability"] = {"target_radius": np.array([s.target_radius for s in per_seed]),
-                            "median_radius": np.array([np.nanmedian(s.radius) for s in per_seed]),
-                            "contracting": np.array([s.contracting.mean() for s in per_seed])}
-
-
 def run_study(args, t_start: float) -> int:
     """Train, evaluate and report (the part of ``main`` after the arguments)."""
     import jax
@@ -261,8 +237,6 @@ def run_study(args, t_start: float) -> int:
         t_runs = time.perf_counter()
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1))
-        if args.stability:
-            add_stability(args.configs, runs)
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()
