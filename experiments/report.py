@@ -50,8 +50,6 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                 rec["final_state_mse"] = rec["final_state_mse_policy"]
             for name, ok in extra.items():
                 rec[name + "_per_condition"] = jsonable(ok[:, i])
-            if "stability" in run:
-                rec["stability"] = {k: float(v[i]) for k, v in run["stability"].items()}
             if "robustness" in run:
                 rob = run["robustness"]
                 rec["robustness"] = {
@@ -357,18 +355,6 @@ def robustness_table(task: tasks.Task, runs) -> list[str]:
     lines.append("Loose threshold 0.1 (the paper's text): " + "; ".join(
         f"{s}/{a}: {runs[(s, a)]['robustness']['success_loose'].sum(axis=-1).mean():.1f}"
         for s in scenarios for a in algs if (s, a) in runs and "robustness" in runs[(s, a)]) + ".")
-    stable = [(s, a) for s in scenarios for a in algs if "stability" in runs.get((s, a), {})]
-    if stable:
-        lines += ["", "Local stability of the closed loop x' = f(x, u(x)) (spectral radius ρ of its "
-                  "Jacobian; < 1 contracts): ρ at the target, median ρ along the rollouts from the "
-                  "random states, and the fraction of rollout states with ρ < 1 (mean [95 % CI] over "
-                  "seeds):", "", "| run | ρ at the target (median over seeds) | median ρ along rollouts | "
-                  "contracting states |", "|---|---|---|---|"]
-        for s, a in stable:
-            st = runs[(s, a)]["stability"]
-            lines.append(f"| {s}/{a} | {np.median(st['target_radius']):.3f} | {np.median(st['median_radius']):.3f} | "
-                         f"{stats.over_seeds(st['contracting']).format(2)} |")
-        lines.append("")
     names = sorted({n for r in runs.values() for n in r.get("robustness", {}).get("extra", {})})
     for name in names:
         lines.append(f"Also {name} (mean over seeds): " + "; ".join(

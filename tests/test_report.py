@@ -59,11 +59,6 @@ def test_results_summary_and_figures(tmp_path):
     assert (st["n"], st["mean"], st["low"], st["high"], st["iqm"]) == (2, 38.5, 27.0, 50.0, 38.5)
     assert "13.0 s for the whole command" in text
     assert text.count("from iteration 2") == 4  # the imitation rule on the synthetic curves
-    runs[("A", "gmr")]["stability"] = {"target_radius": np.array([0.9, 0.95]), "median_radius": np.array([0.8, 1.2]),
-                                       "contracting": np.array([1.0, 0.5])}
-    report.write_summary(tmp_path / "summary.md", configs, runs, [0, 1], "cpu: test", 12.0, results)
-    text = (tmp_path / "summary.md").read_text()
-    assert "| A/gmr | 0.925 | 1.000 | 0.75 [0.50, 1.00], IQM 0.75 (0.5–1) |" in text
     report.plot_all(tmp_path, configs, runs)
     for name in ("learning_curves.png", "paths.png", "robustness.png", "seeds.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
