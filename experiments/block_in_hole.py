@@ -8,7 +8,7 @@ iteration (``--resume``), evaluates every policy from 50 fixed collision-free ra
 states and the disturbance sweep, and writes into ``--out`` what the reach study writes
 (``config.json``, ``results.json``, ``summary.md`` with the paper's rows C and C,D, figures,
 per-run checkpoints). Success is the paper's final-state MSE; how many runs end with the block
-inserted (the tip at least 90 % of the hole depth below the rim) is reported beside it.
+inserted (the tip inside the hole, at least 90 % of its depth below the rim) is reported beside it.
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ Reads a folder written by ``python -m experiments.block_in_hole`` (its ``config.
 run's checkpoints) and prints, per run, iteration, seed and condition, the insertion depth (mm
 below the rim; negative above it) of the block's tip at the end of the noiseless execution of
 the local controllers (the "LQR base layer"), of the policy where there is one, and of each
-noisy sample. "inserted" in the study's summary is a depth of at least 45 mm.
+noisy sample. "inserted" in the study's summary is a depth of at least 45 mm with the tip inside
+the hole.
 """
 
 from __future__ import annotations

@@ -91,3 +91,20 @@ def test_config_fields_are_validated_where_they_are_defined():
             dataclasses.replace(getattr(cfg, group), **{field: bad})
     with pytest.raises(ValueError, match="needs a gmr_jax.tasks.reach.CostConfig"):
         dataclasses.replace(cfg, cost=config.NoiseConfig())
+
+
+def test_inserted_needs_the_tip_in_the_hole():
+    """"inserted" is depth and place: q* is inserted; the same depth beside the fixture (the tip
+    50 mm below the rim's height, 0.2 m to the side, where a flailing arm can end) is not."""
+    from experiments import block_in_hole_poses as bp
+    from gmr_jax.tasks import block_in_hole as bih
+
+    cfg = config.make("block_in_hole", "C", "gmr", sim__backend="mujoco")
+    m = sim.make_sim(cfg.sim).model
+    beside = bp.solve_ik(m, bp.hole_rim(m) + np.array([0.2, 0.0, -0.05]), bp.rotz(bp.YAW))
+    x = np.zeros((2, 12))
+    x[0, :6], x[1, :6] = bih.TARGET, beside
+    s = sim.make_sim(cfg.sim)
+    np.testing.assert_allclose(np.asarray(bih.insertion_depth(s, jnp.asarray(x[:, :6]))), [0.05, 0.05], atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(bih.success_extra(cfg, jnp.asarray(x))["inserted"]), [True, False])
+

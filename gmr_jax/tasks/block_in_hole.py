@@ -12,7 +12,7 @@ its README section has the geometry, contact parameters and measured insertion f
   centre, a tip corner, which fixes the yaw, and its top centre): a log-l2 point term with a
   constant ramp plus a final-step point term, and the action cost with the Jaco gains.
 - Success: the paper's final-state MSE (< 0.01; 0.1 loose) against q* at rest, and, reported
-  beside it, "inserted": the tip at least 90 % of the hole depth below the rim.
+  beside it, "inserted": the tip inside the hole, at least 90 % of the hole depth below the rim.
 - Robustness: 50 fixed random initial states drawn from the reach study's distribution and kept
   only when the arm, the block and the fixture are free of contact (rejection sampling with
   :func:`collision_free`); the disturbance sweep keeps only collision-free disturbed states too.
@@ -49,6 +49,7 @@ SCENE = "block_in_hole"
 SUBSTEPS = 25  # 2 ms physics steps in contact (jaco_mjcf/README.md)
 BLOCK_POINTS = ("block_tip", "block_tip_corner", "block_top")
 HOLE_DEPTH = 0.05  # m, from the rim to the hole bottom
+HOLE_HALF_WIDTH = 0.0203  # m, from the hole axis to a wall (40.6 mm hole)
 INSERTED_FRACTION = 0.9  # "inserted": the tip at least this fraction of HOLE_DEPTH below the rim
 
 
@@ -148,10 +149,25 @@ def insertion_depth(s: sim_lib.Sim, q: jax.Array) -> jax.Array:
     return rim - tip
 
 
+def tip_offset(s: sim_lib.Sim, q: jax.Array) -> jax.Array:
+    """Horizontal distance of the block's tip from the hole axis, the larger of |Δx| and |Δy|
+    (m; the hole is square and axis-aligned): q [..., 6] → [...]."""
+    m = s.model
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    axis = np.asarray(d.site("hole_rim").xpos[:2])
+    tip = jnp.vectorize(lambda qq: sim_lib.site_position(s, qq, "block_tip")[:2], signature="(n)->(k)")(q)
+    return jnp.max(jnp.abs(tip - axis), axis=-1)
+
+
 def success_extra(cfg: Config, final_x: jax.Array) -> dict:
-    """{"inserted": the tip at least INSERTED_FRACTION of the hole depth below the rim} [...]."""
+    """{"inserted": the tip inside the hole (within its half-width HOLE_HALF_WIDTH of the axis)
+    and at least INSERTED_FRACTION of the hole depth below the rim} [...]. Depth alone is not
+    enough: a block swung down beside the fixture also ends below the rim's height."""
     s = sim_lib.make_sim(cfg.sim)
-    return {"inserted": insertion_depth(s, final_x[..., : s.nq]) >= INSERTED_FRACTION * HOLE_DEPTH}
+    q = final_x[..., : s.nq]
+    return {"inserted": (insertion_depth(s, q) >= INSERTED_FRACTION * HOLE_DEPTH)
+            & (tip_offset(s, q) <= HOLE_HALF_WIDTH)}
 
 
 def _colliding_copy(m: mujoco.MjModel) -> mujoco.MjModel:
