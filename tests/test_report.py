@@ -91,3 +91,13 @@ def test_intervals_cli_reads_a_results_json(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         intervals.main([str(tmp_path / "bad.json")])
     assert exc.value.code == 2 and "cannot read a results.json" in capsys.readouterr().err
+
+
+def test_final_states_cli_names_a_folder_that_is_not_a_run(tmp_path, capsys):
+    import pytest
+
+    from experiments import final_states
+
+    with pytest.raises(SystemExit) as exc:
+        final_states.main([str(tmp_path), "C_gmr"])
+    assert exc.value.code == 2 and "C_gmr: not a run folder of a study" in capsys.readouterr().err
