@@ -22,9 +22,6 @@ import traceback
 from gmr_jax import checkpoint, config, policies, runner, tasks
 from gmr_jax.sim import MJCFError
 
-# Fewest parallel rollouts for which "auto" picks MJX on a GPU. On an H100 in float64 a call of
-# 10 rollouts took 0.11 s with C MuJoCo against 0.18 s with MJX, 60 rollouts 0.26 s against
-# 0.17 s (benchmarks/RESULTS.md): MJX costs about the same for any batch, C MuJoCo grows with it.
 # Iteration programs compiled at once (--compile-jobs): 2 and 4 were equally fast on an H100 and
 # 4 was slower on the 2-core CPU (benchmarks/RESULTS.md).
 DEFAULT_COMPILE_JOBS = 2

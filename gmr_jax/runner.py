@@ -319,9 +319,8 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
       label: the run's name in progress events.
     Returns:
       dict with ``history`` (stacked metrics, leading axes [iteration, seed, ...]),
-      ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies,
-      ``policy_params`` (the last iteration's, leading seed axis) and, once every iteration is
-      done, ``robustness`` and ``sweep``.
+      ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies once every
+      iteration is done, ``robustness`` and ``sweep``.
     Raises:
       TrainingError: non-finite values or a failed η search in the first iteration or for every
         seed still running; the checkpoints of the iterations before are intact. A seed that fails
@@ -356,8 +355,6 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     result = {"history": stacked, "iteration_s": iteration_s}
     if robustness is not None and len(history) == cfg.iterations:
         result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
-    if state.policy is not None:
-        result["policy_params"] = layout.real(state.policy.params)
     result["wall_s"] = time.perf_counter() - t0
     result["timing"] = dict(timer)
     return result

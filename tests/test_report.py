@@ -4,6 +4,7 @@ summary's robustness table against the paper, the imitation iteration, and the f
 import json
 
 import numpy as np
+import pytest
 
 from experiments import report
 from gmr_jax import config
@@ -86,16 +87,12 @@ def test_intervals_cli_reads_a_results_json(tmp_path, capsys):
     assert intervals.main([str(path)]) == 0
     assert "| A/gmr | successes | 2 | 38.5 [27.0, 50.0], IQM 38.5 (27–50) |" in capsys.readouterr().out
     (tmp_path / "bad.json").write_text("{")
-    import pytest
-
     with pytest.raises(SystemExit) as exc:
         intervals.main([str(tmp_path / "bad.json")])
     assert exc.value.code == 2 and "cannot read a results.json" in capsys.readouterr().err
 
 
 def test_final_states_cli_names_a_folder_that_is_not_a_run(tmp_path, capsys):
-    import pytest
-
     from experiments import final_states
 
     with pytest.raises(SystemExit) as exc:

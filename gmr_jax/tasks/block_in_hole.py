@@ -136,38 +136,33 @@ def make_cost(cfg: Config) -> cost_lib.CostFn:
 # Where the block is, and which arm configurations touch nothing
 
 
-def _site_height(m: mujoco.MjModel, name: str) -> float:
+def _rim(m: mujoco.MjModel) -> np.ndarray:
+    """[3]: the rim centre (site hole_rim, on the hole axis), a fixed point of the scene."""
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
-    return float(d.site(name).xpos[2])
+    return np.array(d.site("hole_rim").xpos)
+
+
+def _tip_from_rim(s: sim_lib.Sim, q: jax.Array) -> jax.Array:
+    """The block tip's position relative to the rim centre (m): q [..., 6] → [..., 3]."""
+    tip = jnp.vectorize(lambda qq: sim_lib.site_position(s, qq, "block_tip"), signature="(n)->(k)")(q)
+    return tip - _rim(s.model)
 
 
 def insertion_depth(s: sim_lib.Sim, q: jax.Array) -> jax.Array:
     """Depth of the block's tip below the rim (m; negative above it): q [..., 6] → [...]."""
-    rim = _site_height(s.model, "hole_rim")
-    tip = jnp.vectorize(lambda qq: sim_lib.site_position(s, qq, "block_tip")[2], signature="(n)->()")(q)
-    return rim - tip
-
-
-def tip_offset(s: sim_lib.Sim, q: jax.Array) -> jax.Array:
-    """Horizontal distance of the block's tip from the hole axis, the larger of |Δx| and |Δy|
-    (m; the hole is square and axis-aligned): q [..., 6] → [...]."""
-    m = s.model
-    d = mujoco.MjData(m)
-    mujoco.mj_kinematics(m, d)
-    axis = np.asarray(d.site("hole_rim").xpos[:2])
-    tip = jnp.vectorize(lambda qq: sim_lib.site_position(s, qq, "block_tip")[:2], signature="(n)->(k)")(q)
-    return jnp.max(jnp.abs(tip - axis), axis=-1)
+    return -_tip_from_rim(s, q)[..., 2]
 
 
 def success_extra(cfg: Config, final_x: jax.Array) -> dict:
-    """{"inserted": the tip inside the hole (within its half-width HOLE_HALF_WIDTH of the axis)
-    and at least INSERTED_FRACTION of the hole depth below the rim} [...]. Depth alone is not
-    enough: a block swung down beside the fixture also ends below the rim's height."""
+    """{"inserted": the tip inside the hole (the larger of its |Δx|, |Δy| from the axis at most
+    HOLE_HALF_WIDTH; the hole is square and axis-aligned) and at least INSERTED_FRACTION of the
+    hole depth below the rim} [...]. Depth alone is not enough: a block swung down beside the
+    fixture also ends below the rim's height."""
     s = sim_lib.make_sim(cfg.sim)
-    q = final_x[..., : s.nq]
-    return {"inserted": (insertion_depth(s, q) >= INSERTED_FRACTION * HOLE_DEPTH)
-            & (tip_offset(s, q) <= HOLE_HALF_WIDTH)}
+    rel = _tip_from_rim(s, final_x[..., : s.nq])
+    return {"inserted": (-rel[..., 2] >= INSERTED_FRACTION * HOLE_DEPTH)
+            & (jnp.max(jnp.abs(rel[..., :2]), axis=-1) <= HOLE_HALF_WIDTH)}
 
 
 def _colliding_copy(m: mujoco.MjModel) -> mujoco.MjModel:

@@ -175,4 +175,6 @@ TASK = Task(
     target_state=target_state, make_cost=make_cost, robustness_states=robustness_states,
     disturbed_states=disturbed_states, success_extra=lambda cfg, final_x: {},
     sweep_radii=(0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0), sweep_per_radius=10,
+    # MJX costs about the same for any batch on a GPU, C MuJoCo grows with it; they cross
+    # between 10 and 60 rollouts (benchmarks/RESULTS.md)
     paper_robustness=PAPER_ROBUSTNESS, mjx_min_rollouts=32)
