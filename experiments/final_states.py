@@ -4,8 +4,8 @@ Restores each run's last checkpoint from a study's output folder (e.g. ``C_gmr``
 ``python -m experiments.block_in_hole``), executes every seed's policy from the robustness test's
 50 random states and prints per seed: the paper's successes (final-state MSE < 0.01), the task's
 further measures (for block-in-hole "inserted": tip in the hole, at least 45 mm deep), and for the
-states that meet one but not the other, the median joint error |q − q*| per joint and the median
-largest joint speed — e.g. a block below the rim's height beside the fixture with the arm still
+states that meet one but not the other, and those that meet neither, the median joint error
+|q − q*| per joint and the median largest joint speed — e.g. a block below the rim's height beside the fixture with the arm still
 spinning, or an arm near q* in joint space with the block not in the hole.
 """
 
@@ -32,7 +32,8 @@ def describe(cfg: config.Config, params) -> list[str]:
     for name, ok in rob.extra.items():
         ok = np.asarray(ok)
         lines[0] += f"; {name}: {int(ok.sum())}/{ok.size}"
-        for label, sel in ((f"{name}, MSE too large", ok & ~success), (f"MSE below, not {name}", success & ~ok)):
+        for label, sel in ((f"{name}, MSE too large", ok & ~success), (f"MSE below, not {name}", success & ~ok),
+                           ("neither", ~success & ~ok)):
             if sel.any():
                 err = np.median(np.abs(fx[sel, :nq] - target[:nq]), axis=0)
                 speed = np.median(np.abs(fx[sel, nq:]).max(axis=1))
