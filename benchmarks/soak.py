@@ -40,8 +40,24 @@ def _finite_per_seed(tree) -> np.ndarray:
     return ok
 
 
-def soak_run(cfg: config.Config, num_seeds: int, chunk: int, mesh, first_seed: int = 0) -> dict:
-    """Train ``num_seeds`` seeds of ``cfg`` in chunks; counts of failed and non-finite seeds."""
+def _row(failed, nonfinite, mse, first_seed, compile_s, run_s) -> dict:
+    """The soak's counts over the chunks done so far (lists of per-chunk arrays)."""
+    failed, nonfinite, mse = np.concatenate(failed), np.concatenate(nonfinite), np.concatenate(mse)
+    return {"seeds": int(failed.size), "first_seed": first_seed, "failed": int(failed.sum()),
+            "nonfinite": int(nonfinite.sum()),
+            "failed_seeds": (np.flatnonzero(failed) + first_seed).tolist()[:50],
+            "nonfinite_seeds": (np.flatnonzero(nonfinite) + first_seed).tolist()[:50],
+            "final_mse_median": float(np.nanmedian(mse)), "success_0.01": int((mse < 0.01).sum()),
+            "compile_s": compile_s, "run_s": run_s}
+
+
+def soak_run(cfg: config.Config, num_seeds: int, chunk: int, mesh, first_seed: int = 0,
+             on_chunk=None) -> dict:
+    """Train ``num_seeds`` seeds of ``cfg`` in chunks; counts of failed and non-finite seeds.
+
+    ``on_chunk(row)``, if given, receives the counts over the seeds done so far after every chunk
+    (so that a call cut short keeps its finished chunks).
+    """
     program = sharding.seed_program(mdgps.train, mesh, (True,))
     size = sharding.padded_count(min(chunk, num_seeds), mesh)
     compiled, compile_s, run_s = None, 0.0, 0.0
@@ -67,12 +83,9 @@ def soak_run(cfg: config.Config, num_seeds: int, chunk: int, mesh, first_seed: i
         mse.append(np.asarray(hist[curve])[:, -1].max(axis=-1))
         print(f"  seeds {start}-{start + n - 1}: {int(failed[-1].sum())} failed, "
               f"{int(nonfinite[-1].sum())} non-finite; {run_s:.1f} s so far", flush=True)
-    failed, nonfinite, mse = np.concatenate(failed), np.concatenate(nonfinite), np.concatenate(mse)
-    return {"seeds": num_seeds, "failed": int(failed.sum()), "nonfinite": int(nonfinite.sum()),
-            "failed_seeds": (np.flatnonzero(failed) + first_seed).tolist()[:50],
-            "nonfinite_seeds": (np.flatnonzero(nonfinite) + first_seed).tolist()[:50],
-            "final_mse_median": float(np.nanmedian(mse)), "success_0.01": int((mse < 0.01).sum()),
-            "compile_s": compile_s, "run_s": run_s}
+        if on_chunk is not None:
+            on_chunk(_row(failed, nonfinite, mse, first_seed, compile_s, run_s))
+    return _row(failed, nonfinite, mse, first_seed, compile_s, run_s)
 
 
 def main(argv=None) -> int:
@@ -99,16 +112,22 @@ def main(argv=None) -> int:
            "python": platform.python_version(), "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
     print(f"Device: {env['device']} × {mesh.size}, {args.precision}, jax {env['jax']}, {env['date']}", flush=True)
     rows = {}
+
+    def write(name, row):
+        rows[name] = row
+        if args.out:  # after every chunk, so that a call cut short keeps what it finished
+            with open(args.out, "w") as f:
+                json.dump({"environment": env, "args": vars(args), "runs": rows}, f, indent=2)
+
     for name in args.runs.split(","):
         scenario, algorithm = name.split("/")
         cfg = config.reach(scenario, algorithm, sim__backend=args.backend, **overrides)
-        rows[name] = row = soak_run(cfg, args.seeds, args.chunk, mesh, args.first_seed)
+        row = soak_run(cfg, args.seeds, args.chunk, mesh, args.first_seed,
+                       on_chunk=lambda r, name=name: write(name, r))
+        write(name, row)
         print(f"{name}: {row['failed']} failed, {row['nonfinite']} non-finite of {row['seeds']} seeds; "
               f"final MSE median {row['final_mse_median']:.3g}, {row['success_0.01']} below 0.01; "
               f"compile {row['compile_s']:.1f} s, run {row['run_s']:.1f} s", flush=True)
-        if args.out:  # after every run, so that a call cut short keeps the runs it finished
-            with open(args.out, "w") as f:
-                json.dump({"environment": env, "args": vars(args), "runs": rows}, f, indent=2)
     return 0
 
 
