@@ -2,8 +2,6 @@
 
 import json
 
-
-
 from benchmarks import soak
 from gmr_jax import config, sharding
 
