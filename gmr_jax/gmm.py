@@ -183,7 +183,7 @@ def _init_params(key, data: Array, mask: Array, k: Array, K_max: int):
     empty = counts == 0
     mu = jnp.where(empty[:, None], m_all, mu)
     sigma = jnp.where(empty[:, None, None], s_all, sigma)
-    sigma = linalg.sym(sigma) + INIT_JITTER * jnp.eye(D, dtype=dtype)
+    sigma = linalg.ridge(linalg.sym(sigma), INIT_JITTER)
     logmass = jnp.full((K_max,), -jnp.log(k.astype(dtype)), dtype)
     return _inactive_defaults(active, mu, sigma, logmass)
 
@@ -198,7 +198,6 @@ def _m_step(data: Array, mask: Array, logobs: Array, active: Array, k: Array):
     and the cluster could never receive mass again); in the log domain its log-mass stays finite.
     """
     dtype = data.dtype
-    D = data.shape[-1]
     valid = mask[:, None] & active[None, :]
     logr = jnp.where(valid, logobs - logsumexp(logobs, axis=1, keepdims=True), -jnp.inf)  # [n, K]
     log_s = logsumexp(logr, axis=0)  # [K], −inf only for inactive clusters
@@ -212,7 +211,7 @@ def _m_step(data: Array, mask: Array, logobs: Array, active: Array, k: Array):
     w = jnp.where(active[None, :], w, 0.0)
     # FIX (numerics only): centred scatter instead of Σ w x xᵀ − μμᵀ, identical in exact arithmetic.
     mu, sigma = _weighted_moments(w, data)
-    sigma = linalg.sym(sigma) + EM_JITTER * jnp.eye(D, dtype=dtype)
+    sigma = linalg.ridge(linalg.sym(sigma), EM_JITTER)  # raised to the Cholesky floor in float32
     return _inactive_defaults(active, mu, sigma, logmass)
 
 

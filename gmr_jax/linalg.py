@@ -45,6 +45,34 @@ def all_finite(tree) -> Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
+def cholesky_floor(a: Array) -> Array:
+    """[..., n] per diagonal entry, the shift 2n(n+1)·ε·a_ii below which Cholesky of a [..., n, n]
+    in its own precision (ε = machine epsilon of a.dtype) may break down on rounding alone.
+
+    Why this size: with H = D⁻¹AD⁻¹, D² = diag(A), Cholesky in precision ε runs to completion if
+    λ_min(H) > nγ_{n+1}/(1 − γ_{n+1}) ≈ n(n+1)ε (Demmel; Higham, *Accuracy and Stability of
+    Numerical Algorithms*, 2002, Thm 10.7). Adding c·a_ii to every diagonal entry gives
+    H' = (H + cI)/(1 + c), so λ_min(H') ≥ c/(1 + c) whatever A's conditioning; c = 2n(n+1)ε
+    leaves a factor 2 for the rounding in forming A itself. A fitted covariance of rank-deficient
+    data (the transitions of a deterministic plant) has λ_min(H) near its absolute ridge (1e-6):
+    above the float64 floor (30×30: 4e-13) by far, below the float32 one (2e-4).
+    """
+    a = jnp.asarray(a)
+    n = a.shape[-1]
+    return 2.0 * n * (n + 1) * jnp.finfo(a.dtype).eps * jnp.diagonal(a, axis1=-2, axis2=-1)
+
+
+def ridge(a: Array, value) -> Array:
+    """a + diag(max(value, :func:`cholesky_floor` (a))) for [..., n, n]: the absolute ridge
+    ``value``, raised per entry to what the precision needs for a Cholesky factorisation to
+    succeed. In float64 the floor lies far below a 1e-6 ridge (for any a_ii < 10⁶), so the result
+    is bitwise a + value·I; in float32 it is what keeps a rank-deficient fit factorisable.
+    """
+    a = jnp.asarray(a)
+    shift = jnp.maximum(jnp.asarray(value, a.dtype), cholesky_floor(a))
+    return a + shift[..., :, None] * jnp.eye(a.shape[-1], dtype=a.dtype)
+
+
 def _cholesky_columns(a: Array) -> Array:
     """Lower Cholesky factor of a [..., n, n] by the left-looking column algorithm."""
     n = a.shape[-1]

@@ -193,3 +193,29 @@ def test_float32_follows_input_dtype():
     np.testing.assert_allclose(mu[match], MEANS, atol=0.3)
     mu0, Phi, m, n0 = gmm_inference(gmm, jnp.asarray(data[:5]))
     assert Phi.dtype == jnp.float32 and n0.dtype == jnp.float32
+
+
+def _transition_points(seed, n=400, dx=12, du=6):
+    """[n, 2dx + du] points [x, u, x'] of a deterministic linear plant x' = F [x; u] around three
+    operating points: every cluster's covariance is rank dx + du."""
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(3, dx + du)) * 3.0
+    xu = centres[rng.integers(0, 3, n)] + rng.normal(size=(n, dx + du)) * np.r_[np.full(dx, 0.5), np.full(du, 2.0)]
+    F = np.eye(dx, dx + du) + 0.05 * rng.normal(size=(dx, dx + du))
+    return np.concatenate([xu, xu @ F.T], axis=1)
+
+
+def test_float32_fit_of_rank_deficient_transitions_stays_finite():
+    """The toolbox's absolute 1e-6 jitter is below float32's Cholesky floor for such data (its
+    E-step then returns NaN); the jitter raised to ``linalg.cholesky_floor`` keeps the fit finite."""
+    data = _transition_points(4).astype(np.float32)
+    D_ = data.shape[1]
+    gmm, info = jax.jit(gmm_update_with_info, static_argnums=5)(
+        gmm_empty(K_MAX, D_, jnp.float32), jax.random.key(0), jnp.asarray(data), None, 3, 100)
+    assert bool(info.ok) and np.isfinite(float(info.loglik))
+    demmel = D_ * (D_ + 1) * np.finfo(np.float32).eps
+    for s in np.asarray(gmm.sigma[:3], np.float64):
+        d = np.sqrt(np.diag(s))
+        assert np.linalg.eigvalsh(s / np.outer(d, d)).min() > demmel
+    mu0, Phi, m, n0 = gmm_inference(gmm, jnp.asarray(data[:5]))
+    assert np.isfinite(np.asarray(Phi)).all()

@@ -94,3 +94,46 @@ def test_mdgps_iteration_lowers_to_no_lapack_call_on_cpu():
         text = jax.jit(mdgps.iteration, static_argnums=0).lower(
             cfg, state, jax.random.PRNGKey(1), jnp.asarray(True)).as_text()
         assert "lapack" not in text.lower(), algorithm
+
+
+def _transition_covariance(rng, n_points=400, dx=12, du=6):
+    """The covariance of points [x, u, x'] with x' = F [x; u] exactly (a deterministic plant):
+    rank dx + du of D = 2dx + du, scales of joint angles, velocities and torques."""
+    x = rng.normal(size=(n_points, dx)) * np.r_[np.full(dx // 2, 0.3), np.full(dx - dx // 2, 2.0)]
+    u = 3.0 * rng.normal(size=(n_points, du))
+    xu = np.concatenate([x, u], axis=1)
+    F = np.eye(dx, dx + du) + 0.05 * rng.normal(size=(dx, dx + du))
+    y = np.concatenate([xu, xu @ F.T], axis=1)
+    return np.cov(y.T, bias=True)
+
+
+def _lambda_min_scaled(a) -> float:
+    """λ_min of D⁻¹AD⁻¹, D² = diag(A), computed in float64 (the quantity of Demmel's theorem)."""
+    a = np.asarray(a, np.float64)
+    d = np.sqrt(np.diag(a))
+    return float(np.linalg.eigvalsh(a / np.outer(d, d)).min())
+
+
+def test_ridge_is_bitwise_the_absolute_ridge_in_float64():
+    a = _transition_covariance(np.random.default_rng(2))
+    got = np.asarray(linalg.ridge(jnp.asarray(a), 1e-6))
+    np.testing.assert_array_equal(got, a + 1e-6 * np.eye(a.shape[0]))
+
+
+def test_ridge_makes_a_rank_deficient_float32_covariance_factorisable():
+    a = _transition_covariance(np.random.default_rng(3)).astype(np.float32)
+    n = a.shape[0]
+    demmel = n * (n + 1) * np.finfo(np.float32).eps  # λ_min(H) above this: Cholesky completes
+    # The toolbox's absolute 1e-6 ridge leaves the scaled matrix below the theorem's threshold:
+    # no guarantee in float32 (it fails or not with the rounding of the CPU at hand).
+    plain = a + np.float32(1e-6) * np.eye(n, dtype=np.float32)
+    assert _lambda_min_scaled(plain) < demmel
+    ridged = linalg.ridge(jnp.asarray(a), 1e-6)
+    assert ridged.dtype == jnp.float32
+    assert _lambda_min_scaled(ridged) > demmel
+    for chol in (jax.jit(linalg.cholesky), jnp.linalg.cholesky):  # the CPU columns and LAPACK
+        low = np.asarray(chol(ridged), np.float64)
+        assert np.isfinite(low).all()
+        # backward stable: L Lᵀ reproduces the input to c·n·ε relative (Higham Thm 10.3)
+        err = np.abs(low @ low.T - np.asarray(ridged, np.float64)).max() / np.abs(a).max()
+        assert err < 4 * n * np.finfo(np.float32).eps
