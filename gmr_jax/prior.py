@@ -116,10 +116,13 @@ def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array
     dmu = mun - mu0
     sigma = (N * empsig + Phi + (N * m / (N + m)) * jnp.outer(dmu, dmu)) / (N + n0)
     sigma = linalg.sym(sigma) + sig_reg
-    # The (a, a) block's ridge raised to the Cholesky floor of the precision where it lies below
-    # it (float32; in float64 the shift is exactly zero).
-    floor = jnp.maximum(linalg.cholesky_floor(sigma[:d1, :d1]) - jnp.diagonal(sig_reg)[:d1], 0.0)
-    sigma = sigma.at[jnp.arange(d1), jnp.arange(d1)].add(floor)
+    if jnp.finfo(dtype).bits < 64:
+        # The (a, a) block's ridge raised to the precision's Cholesky floor where it lies below
+        # it (the policy fit has no ridge after t = 0). In float64 the floor (~1e-13·Σ_ii) lies
+        # below the rounding of the fit's own inputs; it is left out there, so that float64
+        # stays bitwise the toolbox's formula.
+        floor = jnp.maximum(linalg.cholesky_floor(sigma[:d1, :d1]) - jnp.diagonal(sig_reg)[:d1], 0.0)
+        sigma = sigma.at[jnp.arange(d1), jnp.arange(d1)].add(floor)
     s11 = sigma[:d1, :d1]
     s12 = sigma[:d1, d1:d1 + d2]
     # Σ_aa is symmetric positive definite (prior or ridge): a Cholesky solve, not a general one.

@@ -309,3 +309,24 @@ def test_one_sample_is_rejected(prior1):
     X, U = _rollout(SYS1, 1, 0)
     with pytest.raises(ValueError, match="at least 2"):
         fit_dynamics(prior1, jnp.asarray(X), jnp.asarray(U), CFG)
+
+
+def test_float32_joint_fit_of_collinear_inputs_without_ridge_is_finite():
+    """The policy prior's fit has no ridge after t = 0; in float32 the (a, a) block gets the
+    precision's Cholesky floor (``linalg.cholesky_floor``), so exactly collinear inputs (no prior,
+    no ridge: singular in exact arithmetic) still give a finite fit that reproduces b = W a."""
+    r = np.random.default_rng(5)
+    N, d2 = 40, 2
+    x = r.normal(size=(N, 3))
+    a = np.c_[x, x[:, :1] + x[:, 1:2]]  # rank 3 of 4
+    W = r.normal(size=(d2, 4))
+    pts = np.c_[a, a @ W.T].astype(np.float32)
+    d1, D = 4, 4 + d2
+    zeros = jnp.zeros((D, D), jnp.float32)
+    fd, fc, dynsig = jax.jit(gauss_fit_joint_prior, static_argnums=(6, 7))(
+        jnp.asarray(pts), jnp.zeros(D, jnp.float32), zeros, 0.0, 0.0, jnp.full(N, 1.0 / N, jnp.float32),
+        d1, d2, zeros)
+    assert all(np.isfinite(np.asarray(v)).all() for v in (fd, fc, dynsig))
+    pred = pts[:, :d1] @ np.asarray(fd, np.float64).T + np.asarray(fc)
+    # the floor biases the fit by about its own size relative to the data (2·4·5·ε ≈ 5e-6)
+    assert np.abs(pred - pts[:, d1:]).max() < 1e-3 * np.abs(pts[:, d1:]).max()

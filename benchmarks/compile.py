@@ -1,0 +1,122 @@
+"""Where the compilation of one MDGPS iteration goes: each stage compiled on its own.
+
+``mdgps.iteration`` is a straight composition of stages (sample, cost, dynamics, anchor with the
+policy linearisation and the first iteration's catch-up S-step, C-step, S-step, learning curve).
+This benchmark lowers and compiles every stage as its own program, with the abstract shapes the
+stage sees inside the iteration, and then the whole iteration and the whole ``train``, and
+reports per program the lowering and compilation seconds and the size of its optimised HLO
+(instructions, while loops)::
+
+    python -m benchmarks.compile --algorithm gmr --scenario AB --out compile.json
+
+Compilation times of separate programs do not add up exactly to the whole program's (XLA
+optimises across stage boundaries there), but they show which stage dominates. Run it with an
+empty persistent compilation cache (it sets none).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import platform
+import re
+import time
+
+import jax
+import jax.numpy as jnp
+
+from gmr_jax import config, mdgps, policies, tasks
+
+
+def _abstract(tree):
+    return jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)), tree)
+
+
+def _hlo_size(compiled) -> dict:
+    text = compiled.as_text() or ""
+    instructions = sum(1 for line in text.splitlines() if re.match(r"\s*(ROOT )?%?[\w.\-]+ = ", line))
+    return {"hlo_instructions": instructions, "while_loops": len(re.findall(r"= \S+ while\(", text))}
+
+
+def profile(fn, *args) -> dict:
+    """Lower and compile ``jax.jit(fn)`` for abstract ``args``: seconds and HLO size."""
+    t0 = time.perf_counter()
+    lowered = jax.jit(fn).lower(*args)
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    t2 = time.perf_counter()
+    return {"lower_s": t1 - t0, "compile_s": t2 - t1, **_hlo_size(compiled)}
+
+
+def stage_programs(cfg: config.Config):
+    """[(name, fn, abstract args)] of the stages of one iteration, in their order."""
+    key = jax.random.PRNGKey(0)
+    state = jax.eval_shape(lambda k: mdgps.init(cfg, k), key)
+    x0 = tasks.initial_states(cfg.task, state.eta.dtype)
+    first = jax.ShapeDtypeStruct((), jnp.bool_)
+    k = _abstract(key)
+    samples = jax.eval_shape(lambda s, kk, f: mdgps.sample_stage(cfg, s, x0, kk, f), state, k, first)
+    cost, _ = jax.eval_shape(lambda sm: mdgps.cost_stage(cfg, sm), samples)
+    _, dyn = jax.eval_shape(lambda p, sm, kk: mdgps.dynamics_stage(cfg, p, sm, kk), state.dyn_prior, samples, k)
+    progs = [
+        ("sample", lambda s, kk, f: mdgps.sample_stage(cfg, s, x0, kk, f), (state, k, first)),
+        ("cost", lambda sm: mdgps.cost_stage(cfg, sm), (samples,)),
+        ("dynamics", lambda p, sm, kk: mdgps.dynamics_stage(cfg, p, sm, kk), (state.dyn_prior, samples, k)),
+        ("anchor (linearisation + catch-up S-step)",
+         lambda s, sm, f, k1, k2: mdgps.anchor_stage(cfg, s, sm, f, k1, k2), (state, samples, first, k, k)),
+    ]
+    anchor = state.traj
+    if state.policy is not None:
+        _, anchor, _ = jax.eval_shape(lambda s, sm, f, k1, k2: mdgps.anchor_stage(cfg, s, sm, f, k1, k2),
+                                      state, samples, first, k, k)
+    progs.append(("C-step (η search)", lambda d, c, a, e, m: mdgps.c_step(cfg, d, c, a, e, m),
+                  (dyn, cost, anchor, state.eta, state.step_mult)))
+    traj, marginals, *_ = jax.eval_shape(lambda d, c, a, e, m: mdgps.c_step(cfg, d, c, a, e, m),
+                                         dyn, cost, anchor, state.eta, state.step_mult)
+    if state.policy is not None:
+        progs.append(("S-step", lambda p, t, sm, mg, kk: mdgps.s_step(cfg, p, t, sm, mg, kk),
+                      (state.policy, traj, samples, marginals, k)))
+    progs.append(("learning curve", lambda t, p: mdgps.learning_curve(cfg, t, p, x0), (traj, state.policy)))
+    progs.append(("iteration", lambda s, kk, f: mdgps.iteration(cfg, s, kk, f), (state, k, first)))
+    progs.append(("train", lambda kk: mdgps.train(cfg, kk), (k,)))
+    return progs
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.compile", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--algorithm", default="gmr", choices=tuple(policies.ALGORITHMS))
+    p.add_argument("--scenario", default="AB")
+    p.add_argument("--backend", default="mjx", choices=("auto", "mjx", "mujoco"))
+    p.add_argument("--precision", default="float64", choices=("float32", "float64"))
+    p.add_argument("--only", default="", help="comma-separated stage names to compile (default: all)")
+    p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
+                   help="configuration override (a Python literal)")
+    p.add_argument("--out", help="write the results as JSON to this file")
+    args = p.parse_args(argv)
+    jax.config.update("jax_enable_x64", args.precision == "float64")
+    overrides = {kk: ast.literal_eval(v) for kk, v in (item.split("=", 1) for item in args.set)}
+    cfg = config.reach(args.scenario, args.algorithm, sim__backend=args.backend, **overrides)
+    dev = jax.devices()[0]
+    env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "platform": dev.platform,
+           "precision": args.precision, "jax": jax.__version__, "python": platform.python_version(),
+           "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
+    print(f"Device: {env['device']}, {args.precision}, jax {env['jax']}, {args.scenario}/{args.algorithm}", flush=True)
+    only = {s.strip() for s in args.only.split(",") if s.strip()}
+    rows = {}
+    for name, fn, fargs in stage_programs(cfg):
+        if only and not any(name.startswith(o) for o in only):
+            continue
+        rows[name] = r = profile(fn, *fargs)
+        print(f"  {name:42s} lower {r['lower_s']:6.1f} s  compile {r['compile_s']:6.1f} s  "
+              f"{r['hlo_instructions']:6d} HLO instructions, {r['while_loops']} while loops", flush=True)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump({"environment": env, "args": vars(args), "programs": rows}, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
