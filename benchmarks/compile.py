@@ -37,7 +37,7 @@ def _abstract(tree):
 def _hlo_size(compiled) -> dict:
     text = compiled.as_text() or ""
     instructions = sum(1 for line in text.splitlines() if re.match(r"\s*(ROOT )?%?[\w.\-]+ = ", line))
-    return {"hlo_instructions": instructions, "while_loops": len(re.findall(r"= \S+ while\(", text))}
+    return {"hlo_instructions": instructions, "while_loops": len(re.findall(r"\swhile\(", text))}
 
 
 def profile(fn, *args) -> dict:

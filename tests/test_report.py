@@ -1,5 +1,5 @@
 """The study report (experiments.report) from small synthetic run results: results.json, the
-summary's robustness table against the paper, the imitation iteration, and the figures."""
+summary's robustness table against the paper, the learning speed, and the figures."""
 
 import json
 
@@ -59,7 +59,8 @@ def test_results_summary_and_figures(tmp_path):
     st = again["robustness_stats"]["A/gmr"]["success"]
     assert (st["n"], st["mean"], st["low"], st["high"], st["iqm"]) == (2, 38.5, 27.0, 50.0, 38.5)
     assert "13.0 s for the whole command" in text
-    assert text.count("from iteration 2") == 4  # the imitation rule on the synthetic curves
+    assert text.count("- Learning speed") == 4
+    assert again["learning_speed"]["A/gmr"] == {"lqr": [4, 4], "policy": [4, 4]}  # never below 0.01
     report.plot_all(tmp_path, configs, runs)
     for name in ("learning_curves.png", "paths.png", "robustness.png", "seeds.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
@@ -98,3 +99,18 @@ def test_final_states_cli_names_a_folder_that_is_not_a_run(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         final_states.main([str(tmp_path), "C_gmr"])
     assert exc.value.code == 2 and "C_gmr: not a run folder of a study" in capsys.readouterr().err
+
+
+def test_success_iterations_need_every_condition_at_every_later_iteration():
+    lqr = np.array([[[0.5], [0.5]], [[0.005], [0.02]], [[0.002], [0.005]]])  # [iterations, seeds, M]
+    # seed 0 succeeds from 3 (condition 2 only then); seed 1 at 1 but not at 2 and 3: never (4)
+    policy = np.concatenate([np.array([[[0.5], [0.005]], [[0.02], [0.5]], [[0.005], [0.02]]]),
+                             np.array([[[0.001], [0.001]], [[0.5], [0.001]], [[0.001], [0.001]]])], axis=-1)
+    run = {"history": {"final_state_mse_lqr": lqr, "final_state_mse_policy": policy}}
+    it = report.success_iterations(run, 0.01)
+    np.testing.assert_array_equal(it["lqr"], [2, 3])
+    np.testing.assert_array_equal(it["policy"], [3, 4])
+    line = report.learning_speed_line("gmr", run, 0.01)
+    # the lag per seed is 1 and 1: mean 1.0 with the interval [1, 1]
+    assert "the policy's lag 1.0 [1.0, 1.0]" in line and "counted as 4" in line
+    assert report.learning_speed_line("lqr", {"history": {"final_state_mse_lqr": lqr}}, 0.01) is None
