@@ -4,7 +4,10 @@ Reads the ``results.json`` of one or more studies (reach or block-in-hole, any n
 and prints, per run (scenario, algorithm), the robustness successes over seeds as the summaries
 now write them: the mean with its 95 % bootstrap confidence interval, the interquartile mean and
 the range (``gmr_jax.stats``), for the paper's threshold, the loose one and the task's further
-measures (e.g. "inserted"). For results written before the summaries carried intervals.
+measures (e.g. "inserted"), and the learning speed (``experiments.report.success_iterations``:
+the first iteration from which the final-state MSE from every training condition stays below
+``--threshold``) of the LQR base layer and the policy, and the policy's lag. For results written
+before the summaries carried them.
 """
 
 from __future__ import annotations
@@ -14,13 +17,20 @@ import collections
 import json
 import pathlib
 
+import numpy as np
+
+from experiments import report
 from gmr_jax import stats
 
 
-def table(results: dict) -> list[str]:
+def table(results: dict, threshold: float = 0.01) -> list[str]:
     """Markdown rows, one per run and measure."""
     per_run = collections.defaultdict(lambda: collections.defaultdict(list))
+    curves = collections.defaultdict(lambda: collections.defaultdict(list))
     for rec in results["runs"]:
+        for curve in ("final_state_mse_lqr", "final_state_mse_policy"):
+            if curve + "_per_condition" in rec:
+                curves[(rec["scenario"], rec["algorithm"])][curve].append(rec[curve + "_per_condition"])
         rob = rec.get("robustness")
         if rob is None:
             continue
@@ -31,6 +41,15 @@ def table(results: dict) -> list[str]:
     for (scenario, algorithm), measures in per_run.items():
         for key, values in measures.items():
             lines.append(f"| {scenario}/{algorithm} | {key} | {len(values)} | {stats.over_seeds(values).format()} |")
+    for (scenario, algorithm), h in curves.items():
+        # [seeds, iterations, M] -> [iterations, seeds, M], as in a run's history
+        run = {"history": {c: np.swapaxes(np.asarray(v, float), 0, 1) for c, v in h.items()}}
+        it = report.success_iterations(run, threshold)
+        if "policy" in it:
+            it["lag"] = it["policy"] - it["lqr"]
+        for name, values in it.items():
+            lines.append(f"| {scenario}/{algorithm} | learning speed: {name} | {len(values)} | "
+                         f"{stats.over_seeds(values).format()} |")
     return lines
 
 
@@ -38,6 +57,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.intervals", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("results", nargs="+", type=pathlib.Path, help="results.json files of finished studies")
+    p.add_argument("--threshold", type=float, default=0.01,
+                   help="final-state MSE of a success, for the learning speed (default: the paper's 0.01)")
     args = p.parse_args(argv)
     for path in args.results:
         try:
@@ -45,7 +66,7 @@ def main(argv=None) -> int:
         except (OSError, json.JSONDecodeError) as err:
             p.error(f"{path}: cannot read a results.json ({err})")
         print(f"## {path}\n")
-        print("\n".join(table(results)) + "\n")
+        print("\n".join(table(results, args.threshold)) + "\n")
     return 0
 
 

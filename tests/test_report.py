@@ -81,12 +81,18 @@ def test_compare_names_the_differing_fields():
 def test_intervals_cli_reads_a_results_json(tmp_path, capsys):
     from experiments import intervals
 
-    recs = [{"scenario": "A", "algorithm": "gmr", "seed": s, "robustness": {"successes": k, "states": 50}}
+    lqr = [[[0.5], [0.005], [0.002]], [[0.5], [0.02], [0.005]]]  # per seed [iterations, M]
+    pol = [[[0.5], [0.02], [0.005]], [[0.5], [0.5], [0.005]]]
+    recs = [{"scenario": "A", "algorithm": "gmr", "seed": s, "robustness": {"successes": k, "states": 50},
+             "final_state_mse_lqr_per_condition": lqr[s], "final_state_mse_policy_per_condition": pol[s]}
             for s, k in enumerate([50, 27])]
     path = tmp_path / "results.json"
     path.write_text(json.dumps({"runs": recs}))
     assert intervals.main([str(path)]) == 0
-    assert "| A/gmr | successes | 2 | 38.5 [27.0, 50.0], IQM 38.5 (27–50) |" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "| A/gmr | successes | 2 | 38.5 [27.0, 50.0], IQM 38.5 (27–50) |" in out
+    assert "| A/gmr | learning speed: lqr | 2 | 2.5 [2.0, 3.0], IQM 2.5 (2–3) |" in out
+    assert "| A/gmr | learning speed: lag | 2 | 0.5 [0.0, 1.0], IQM 0.5 (0–1) |" in out  # 3−2, 3−3
     (tmp_path / "bad.json").write_text("{")
     with pytest.raises(SystemExit) as exc:
         intervals.main([str(tmp_path / "bad.json")])
