@@ -78,6 +78,10 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="floating-point precision of the whole run (default: %(default)s; float32 "
                         "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument("--no-stability", action="store_true",
+                   help="skip the closed-loop stability of the trained policies (gmr_jax.stability: "
+                        "spectral radius of the one-step Jacobian at the target and along the "
+                        "robustness rollouts)")
     p.add_argument("--jobs", type=_nonnegative_int, default=0,
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
@@ -233,7 +237,8 @@ def run_study(args, t_start: float) -> int:
         plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
-                              scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1))
+                              scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
+                              stability=not args.no_stability)
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()

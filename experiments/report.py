@@ -60,6 +60,11 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                     "distance": jsonable(rob["distance"][i])}
                 for name, ok in rob.get("extra", {}).items():
                     rec["robustness"][f"successes_{name}"] = int(ok[i].sum())
+                if "stability" in run:
+                    stab = run["stability"]
+                    rec["stability"] = {"target_radius": float(stab["target_radius"][i]),
+                                        "contracting": float(stab["contracting"][i]),
+                                        "radius_median": float(np.nanmedian(stab["radius"][i]))}
                 rec["disturbance_sweep"] = {
                     "radii": run["sweep"]["radii"],
                     "success_rate": jsonable(run["sweep"]["success_rate"][i]),
@@ -259,6 +264,7 @@ def write_summary(path: pathlib.Path, configs, runs, seeds, device, total_s, res
     lines = [f"# {task.title} study summary", "",
              f"Device: {device}. Seeds: {seeds}. Total wall time: {_total(total_s, results)}.", ""]
     lines += robustness_table(task, runs)
+    lines += stability_table(task, runs)
     for (scenario, algorithm), run in runs.items():
         cfg = configs[(scenario, algorithm)]
         thr, thr2 = cfg.task.success_threshold, cfg.task.success_threshold_loose
@@ -342,6 +348,29 @@ def robustness_stats(runs) -> dict:
             row[name] = stats.over_seeds(np.asarray(ok).sum(axis=-1))
         out[f"{s}/{a}"] = row
     return out
+
+
+def stability_table(task: tasks.Task, runs) -> list[str]:
+    """Markdown rows: the trained policies' closed-loop stability (``gmr_jax.stability``) beside
+    their successes, each as mean [95 % CI], IQM (range) over seeds."""
+    keys = [k for k in sorted(runs, key=lambda k: (len(k[0]), k)) if "stability" in runs[k]]
+    if not keys:
+        return []
+    lines = ["## Stability of the trained policies' closed loop", "",
+             "ρ = spectral radius of the one-control-step Jacobian of x' = f(x, u(x)) (plant by central "
+             "differences of C MuJoCo, policy by autodiff; ρ < 1: small perturbations shrink locally). "
+             "Contracting: the fraction of the states along the noiseless rollouts from the random "
+             "states (every 5th control step) with ρ < 1.", "",
+             "| trained on | algorithm | ρ at the target | contracting states | successes (of 50) |",
+             "|---|---|---|---|---|"]
+    for s, a in keys:
+        st, rob = runs[(s, a)]["stability"], runs[(s, a)]["robustness"]
+        lines.append(f"| {', '.join(task.scenarios[s])} | {a.upper()} | "
+                     f"{stats.over_seeds(st['target_radius']).format(3)} | "
+                     f"{stats.over_seeds(st['contracting']).format(2)} | "
+                     f"{stats.over_seeds(np.asarray(rob['success']).sum(axis=-1)).format()} |")
+    lines.append("")
+    return lines
 
 
 def robustness_table(task: tasks.Task, runs) -> list[str]:

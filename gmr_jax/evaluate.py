@@ -35,6 +35,7 @@ class Robustness(NamedTuple):
       success_loose: [S] bool, mse < task.success_threshold_loose.
       distance: [S] Euclidean distance of x0 from the nearest training initial state.
       ee: [S, T, 3] end-effector paths.
+      X: [S, T, dX] the visited states (e.g. for ``gmr_jax.stability``).
       extra: the task's further success measures, {name: [S] bool} (e.g. insertion depth).
     """
 
@@ -45,6 +46,7 @@ class Robustness(NamedTuple):
     success_loose: jax.Array
     distance: jax.Array
     ee: jax.Array
+    X: jax.Array
     extra: dict
 
 
@@ -131,7 +133,7 @@ def summarize_robustness(cfg: Config, x0: jax.Array, out: Trajectories) -> Robus
     return Robustness(x0=x0, final_x=final_x, mse=mse,
                       success=finite & (mse < cfg.task.success_threshold),
                       success_loose=finite & (mse < cfg.task.success_threshold_loose),
-                      distance=distance, ee=out.ee, extra=extra)
+                      distance=distance, ee=out.ee, X=out.X, extra=extra)
 
 
 def disturbance_sweep(cfg: Config, params, radii=None, per_radius: int | None = None,

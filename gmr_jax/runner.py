@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmr_jax import checkpoint, config, evaluate, mdgps, policies, sharding, tasks
+from gmr_jax import stability as stability_lib
 
 ProgressFn = Callable[[dict], None]
 
@@ -303,7 +304,7 @@ def check_fresh(run_dirs) -> None:
 
 def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after: int | None = None,
         progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
-        ticket: int | None = None, label: str = "") -> dict:
+        ticket: int | None = None, label: str = "", stability: bool = True) -> dict:
     """Train ``cfg`` for ``seeds`` in parallel into ``run_dir``; checkpoint after every iteration.
 
     Args:
@@ -317,10 +318,12 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
       scheduler: shared by side-by-side runs (default: a private one).
       ticket: this run's place in the tracing order of side-by-side runs (None: any).
       label: the run's name in progress events.
+      stability: also measure the trained policies' closed-loop stability
+        (``gmr_jax.stability``) along the robustness rollouts.
     Returns:
       dict with ``history`` (stacked metrics, leading axes [iteration, seed, ...]),
       ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies once every
-      iteration is done, ``robustness`` and ``sweep``.
+      iteration is done, ``robustness``, ``sweep`` and (with ``stability``) ``stability``.
     Raises:
       TrainingError: non-finite values or a failed η search in the first iteration or for every
         seed still running; the checkpoints of the iterations before are intact. A seed that fails
@@ -332,7 +335,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     if scheduler is None:
         with Scheduler() as own:
             return run(cfg, seeds, run_dir, resume=resume, stop_after=stop_after, progress_fn=progress_fn,
-                       scheduler=own, ticket=ticket, label=label)
+                       scheduler=own, ticket=ticket, label=label, stability=stability)
     report = (lambda text: progress_fn({"run": label, "message": text})) if progress_fn else (lambda text: None)
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
@@ -355,6 +358,10 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     result = {"history": stacked, "iteration_s": iteration_s}
     if robustness is not None and len(history) == cfg.iterations:
         result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
+        if stability:
+            with timer("stability_s"):
+                params = jax.device_get(layout.real(state.policy.params))
+                result["stability"] = stability_lib.measure(cfg, params, result["robustness"]["X"])._asdict()
     result["wall_s"] = time.perf_counter() - t0
     result["timing"] = dict(timer)
     return result
@@ -486,7 +493,8 @@ def run_folder(out, scenario: str, algorithm: str) -> pathlib.Path:
 
 
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
-            scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None) -> dict:
+            scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None,
+            stability: bool = True) -> dict:
     """Train several configurations side by side (threads), each into ``run_folder(out, …)``.
 
     Args:
@@ -498,6 +506,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
         cores and their iterations interleave on the device.
       scheduler: default a private one with 2 compile jobs.
       progress_fn: see the module docstring; events carry "scenario/algorithm" as ``run``.
+      stability: see :func:`run`.
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:
@@ -508,7 +517,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
-                           progress_fn=progress_fn)
+                           progress_fn=progress_fn, stability=stability)
     # The longest runs (a policy's S-step is the slowest, more conditions mean more data) trace
     # first and reach the device first.
     order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
@@ -516,7 +525,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     with concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool:
         futures = {key: pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                     progress_fn=progress_fn, scheduler=scheduler, ticket=i,
-                                    label=f"{key[0]}/{key[1]}")
+                                    label=f"{key[0]}/{key[1]}", stability=stability)
                    for i, key in enumerate(order)}
         try:
             return {key: futures[key].result() for key in configs}

@@ -42,8 +42,9 @@ class SeedStats(NamedTuple):
         f = f"{{:.{digits}f}}"
         if self.n < 2:
             return f"{f.format(self.mean)} (1 seed)"
+        ends = lambda v: f"{v:g}" if float(v).is_integer() else f.format(v)  # noqa: E731
         return (f"{f.format(self.mean)} [{f.format(self.low)}, {f.format(self.high)}], "
-                f"IQM {f.format(self.iqm)} ({self.min:g}–{self.max:g})")
+                f"IQM {f.format(self.iqm)} ({ends(self.min)}–{ends(self.max)})")
 
 
 def iqm(values) -> float:

@@ -31,6 +31,8 @@ def fake_run(M: int, successes, policy=True, seed=0):
         run["robustness"] = {"success": success, "success_loose": success | True,
                              "mse": rng.uniform(size=(SEEDS, STATES)), "distance": rng.uniform(size=(SEEDS, STATES)),
                              "ee": rng.normal(size=(SEEDS, STATES, T, 3)), "extra": {}}
+        run["stability"] = {"target_radius": np.array([0.9, 1.1]), "contracting": np.array([0.5, 0.7]),
+                            "radius": rng.uniform(0.5, 1.5, size=(SEEDS, STATES, 4))}
         run["sweep"] = {"radii": [0.0, 1.0], "success_rate": np.array([[1.0, 0.5], [1.0, 0.3]]),
                         "success_rate_loose": np.ones((SEEDS, 2))}
     return run
@@ -59,6 +61,10 @@ def test_results_summary_and_figures(tmp_path):
     st = again["robustness_stats"]["A/gmr"]["success"]
     assert (st["n"], st["mean"], st["low"], st["high"], st["iqm"]) == (2, 38.5, 27.0, 50.0, 38.5)
     assert "13.0 s for the whole command" in text
+    # ρ 0.9 and 1.1: mean 1.000, interval [0.900, 1.100]; contracting 0.5 and 0.7; successes 50, 27
+    assert ("| A | GMR | 1.000 [0.900, 1.100], IQM 1.000 (0.900–1.100) | 0.60 [0.50, 0.70], IQM 0.60 (0.50–0.70) | "
+            "38.5 [27.0, 50.0], IQM 38.5 (27–50) |") in text
+    assert recs[("A", "gmr", 1)]["stability"]["target_radius"] == 1.1
     assert text.count("- Learning speed") == 4
     assert again["learning_speed"]["A/gmr"] == {"lqr": [4, 4], "policy": [4, 4]}  # never below 0.01
     report.plot_all(tmp_path, configs, runs)
