@@ -78,6 +78,10 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="floating-point precision of the whole run (default: %(default)s; float32 "
                         "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    p.add_argument("--video", action="store_true",
+                   help="render MP4s of every policy run's first seed from the training conditions and "
+                        "three random states into OUT/videos/ (MuJoCo offscreen: EGL or OSMesa; "
+                        "pip install 'gmr-jax[video]'); without it only the still-frame grid frames.png")
     p.add_argument("--no-stability", action="store_true",
                    help="skip the closed-loop stability of the trained policies (gmr_jax.stability: "
                         "spectral radius of the one-step Jacobian at the target and along the "
@@ -247,7 +251,29 @@ def run_study(args, t_start: float) -> int:
                                    command_s=time.perf_counter() - t_start)
     report.write_summary(out / "summary.md", args.configs, runs, seeds, device, total, results)
     print((out / "summary.md").read_text())
+    write_pictures(args, out)
     return 0
+
+
+def write_pictures(args, out: pathlib.Path) -> None:
+    """The policy runs' still-frame grid ``frames.png`` (unless ``--no-plots``) and, with
+    ``--video``, their MP4s (``experiments.video``); where MuJoCo cannot render, one line on
+    stderr instead (the study's results are complete without them)."""
+    if args.no_plots and not args.video:
+        return
+    names = [runner.run_folder(out, s, a).name for s, a in args.configs if a != "lqr"]
+    if not names:
+        return
+    t0 = time.perf_counter()
+    from experiments import video
+    from gmr_jax import render
+
+    try:
+        files = video.write(out, names, video=args.video)
+    except render.RenderingUnavailable as err:
+        print(f"No rollout pictures: {err}", file=sys.stderr)
+        return
+    print(f"Rollout pictures ({time.perf_counter() - t0:.1f} s): " + ", ".join(str(f) for f in files))
 
 
 def main(task_name: str, argv=None, description: str | None = None, t_start: float | None = None) -> int:

@@ -12,13 +12,12 @@ spinning, or an arm near q* in joint space with the block not in the hole.
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 
 import jax
 import numpy as np
 
-from gmr_jax import checkpoint, config, evaluate, runner, tasks
+from gmr_jax import config, evaluate, runner, tasks
 
 
 def describe(cfg: config.Config, params) -> list[str]:
@@ -50,13 +49,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     for name in args.runs:
-        run_dir = args.out / name
         try:
-            meta = json.loads((run_dir / "config.json").read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            p.error(f"{run_dir}: not a run folder of a study ({err})")
-        cfg, seeds = config.from_dict(meta["config"]), meta["seeds"]
-        state, _ = checkpoint.restore(run_dir / "checkpoints", runner.initial_state(cfg, seeds))
+            cfg, seeds, state = runner.restore_run(args.out / name)
+        except ValueError as err:
+            p.error(str(err))
         for i, seed in enumerate(seeds):
             params = jax.tree_util.tree_map(lambda a: a[i], state.policy.params)
             lines = describe(cfg, params)

@@ -196,6 +196,24 @@ def initial_state(cfg: config.Config, seeds) -> mdgps.TrainState:
     return _program("init", sharding.seed_mesh(1))(program_config(cfg), seed_keys(cfg, seeds)[0])
 
 
+def restore_run(run_dir) -> tuple[config.Config, list, mdgps.TrainState]:
+    """(configuration, seeds, newest intact TrainState [S]) of a finished or interrupted run
+    folder (its ``config.json`` and ``checkpoints/``).
+
+    Raises:
+      ValueError: the folder holds no run's ``config.json``.
+      checkpoint.CheckpointError: no intact checkpoint.
+    """
+    run_dir = pathlib.Path(run_dir)
+    try:
+        meta = json.loads((run_dir / "config.json").read_text())
+        cfg, seeds = config.from_dict(meta["config"]), meta["seeds"]
+    except (OSError, ValueError, KeyError) as err:
+        raise ValueError(f"{run_dir}: not a run folder of a study ({err})") from err
+    state, _ = checkpoint.restore(run_dir / "checkpoints", initial_state(cfg, seeds))
+    return cfg, seeds, state
+
+
 def program_config(cfg: config.Config) -> config.Config:
     """``cfg`` as the compiled programs see it: an iteration, the initial state and the
     robustness evaluation do not depend on the number of iterations, so runs that differ only

@@ -1,6 +1,7 @@
 """Test set-up: float64 numerics for every test, four CPU devices, and one runner scheduler."""
 
 import os
+import sys
 
 # Four XLA CPU devices, so that the seed axis can be split over a device mesh
 # (tests/test_sharding.py); every other computation runs on the first device as before. Set
@@ -8,6 +9,10 @@ import os
 _FLAGS = os.environ.get("XLA_FLAGS", "")
 if "xla_force_host_platform_device_count" not in _FLAGS:
     os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_force_host_platform_device_count=4".strip()
+
+# Offscreen rendering (gmr_jax.render) needs the backend chosen before MuJoCo's first import.
+if sys.platform.startswith("linux"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
