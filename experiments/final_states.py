@@ -7,17 +7,33 @@ further measures (for block-in-hole "inserted": tip in the hole, at least 45 mm 
 states that meet one but not the other, and those that meet neither, the median joint error
 |q − q*| per joint and the median largest joint speed — e.g. a block below the rim's height beside the fixture with the arm still
 spinning, or an arm near q* in joint space with the block not in the hole.
+
+``--without-contacts`` also executes every policy from the same states in a copy of the scene
+with contacts disabled (the block passes through the table and the fixture): the difference in
+successes measures how much of the failures the obstruction by table and fixture explains.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
+import tempfile
 
 import jax
+import mujoco
 import numpy as np
 
-from gmr_jax import config, evaluate, runner, tasks
+from gmr_jax import config, evaluate, runner, sim as sim_lib, tasks
+
+
+def without_contacts(cfg: config.Config, folder: pathlib.Path) -> config.Config:
+    """``cfg`` with its scene copied into ``folder`` with every contact disabled."""
+    spec = mujoco.MjSpec.from_file(str(sim_lib.scene_path(cfg.sim.scene)))
+    spec.option.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    path = folder / f"{sim_lib.scene_path(cfg.sim.scene).stem}_no_contacts.xml"
+    path.write_text(spec.to_xml())
+    return dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, scene=str(path)))
 
 
 def describe(cfg: config.Config, params) -> list[str]:
@@ -46,7 +62,10 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=pathlib.Path, help="a study's output folder")
     p.add_argument("runs", nargs="+", help="run folders in it, e.g. C_gmr CD_mdgps")
+    p.add_argument("--without-contacts", action="store_true",
+                   help="also execute the policies in the scene with contacts disabled")
     args = p.parse_args(argv)
+    scratch = tempfile.TemporaryDirectory()
     jax.config.update("jax_enable_x64", True)
     for name in args.runs:
         try:
@@ -59,6 +78,9 @@ def main(argv=None) -> int:
             print(f"{name} seed {seed}: {lines[0]}")
             for line in lines[1:]:
                 print(line)
+            if args.without_contacts:
+                free = describe(without_contacts(cfg, pathlib.Path(scratch.name)), params)
+                print(f"  without contacts: {free[0]}")
     return 0
 
 

@@ -126,3 +126,20 @@ def test_success_iterations_need_every_condition_at_every_later_iteration():
     # the lag per seed is 1 and 1: mean 1.0 with the interval [1, 1]
     assert "the policy's lag 1.0 [1.0, 1.0]" in line and "counted as 4" in line
     assert report.learning_speed_line("lqr", {"history": {"final_state_mse_lqr": lqr}}, 0.01) is None
+
+
+def test_final_states_scene_without_contacts(tmp_path):
+    import mujoco
+
+    from experiments import final_states
+    from gmr_jax import sim as sim_lib
+
+    cfg = config.make("block_in_hole", "C", "gmr")
+    free = final_states.without_contacts(cfg, tmp_path)
+    m0, m1 = sim_lib.make_sim(cfg.sim).model, sim_lib.make_sim(free.sim).model
+    assert m1.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT
+    assert not m0.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CONTACT
+    # the same plant otherwise: bodies, masses, joints and actuators
+    assert (m1.nq, m1.nu, m1.nbody, m1.npair) == (m0.nq, m0.nu, m0.nbody, m0.npair)
+    np.testing.assert_array_equal(m1.body_mass, m0.body_mass)
+    np.testing.assert_array_equal(m1.actuator_ctrlrange, m0.actuator_ctrlrange)
