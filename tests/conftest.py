@@ -1,5 +1,6 @@
 """Test set-up: float64 numerics for every test, four CPU devices, and one runner scheduler."""
 
+import ctypes.util
 import os
 import sys
 
@@ -11,7 +12,8 @@ if "xla_force_host_platform_device_count" not in _FLAGS:
     os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_force_host_platform_device_count=4".strip()
 
 # Offscreen rendering (gmr_jax.render) needs the backend chosen before MuJoCo's first import.
-if sys.platform.startswith("linux"):
+# Only where libEGL exists: without it PyOpenGL's EGL import raises inside ``import mujoco``.
+if sys.platform.startswith("linux") and ctypes.util.find_library("EGL"):
     os.environ.setdefault("MUJOCO_GL", "egl")
 
 import jax  # noqa: E402
