@@ -17,7 +17,6 @@ empty persistent compilation cache (it sets none).
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import os
 import platform
@@ -27,6 +26,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from experiments import cli
 from gmr_jax import config, mdgps, policies, tasks
 
 
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
     jax.config.update("jax_enable_x64", args.precision == "float64")
-    overrides = {kk: ast.literal_eval(v) for kk, v in (item.split("=", 1) for item in args.set)}
+    overrides = cli.parse_overrides(p, args.set)
     cfg = config.reach(args.scenario, args.algorithm, sim__backend=args.backend, **overrides)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "platform": dev.platform,

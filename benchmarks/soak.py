@@ -15,7 +15,6 @@ did not learn. Example::
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import os
 import platform
@@ -25,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import cli
 from gmr_jax import config, mdgps, sharding
 
 
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
     jax.config.update("jax_enable_x64", args.precision == "float64")
-    overrides = {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.set)}
+    overrides = cli.parse_overrides(p, args.set)
     mesh = sharding.seed_mesh(args.devices)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "devices": mesh.size,
