@@ -110,7 +110,9 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     return p
 
 
-def _overrides(p: argparse.ArgumentParser, items: list[str]) -> dict:
+def parse_overrides(p: argparse.ArgumentParser, items: list[str]) -> dict:
+    """``--set GROUP__FIELD=VALUE`` items → {name: value} (Python literals, else the bare word);
+    a malformed item is a usage error of ``p``."""
     out = {}
     for item in items:
         name, sep, text = item.partition("=")
@@ -147,7 +149,7 @@ def parse_args(task_name: str, argv=None, description: str | None = None) -> arg
     p = build_parser(task, description)
     args = p.parse_args(argv)
     args.task = task
-    args.overrides = _overrides(p, args.set)
+    args.overrides = parse_overrides(p, args.set)
     args.algorithms = [a.strip() for a in args.algorithm.split(",") if a.strip()]
     args.scenarios = [s.strip() for s in args.scenario.split(",") if s.strip()]
     dedicated = {"iterations": "--iterations", "num_samples": "--samples", "task__T": "--T",

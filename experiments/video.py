@@ -55,8 +55,10 @@ def write(out: pathlib.Path, runs: list[str], seed_index: int = 0, random_states
     if reason is not None:
         raise render.RenderingUnavailable(reason)
     rows, written = [], []
-    for name in runs:
-        cfg, seed, rolls = rollouts(out / name, seed_index, random_states)
+    # Every rollout first, then every picture: no XLA compilation after an OpenGL context exists
+    # in the process (Mesa's software EGL brings its own LLVM).
+    done = [(name, *rollouts(out / name, seed_index, random_states)) for name in runs]
+    for name, cfg, seed, rolls in done:
         for label, X in rolls:
             steps = render.grid_times(X.shape[0])
             if video:  # every frame; the grid takes its columns from them

@@ -78,6 +78,31 @@ def execute(cfg: Config, controller, x0: jax.Array) -> Trajectories:
     return jax.vmap(lambda p, x: sim_lib.rollout(s, p, x, eps), in_axes=(axis, 0))(controller, x0)
 
 
+def execute_pair(cfg: Config, traj: LinearGaussianPolicy, policy_fn, x0: jax.Array) -> tuple[Trajectories, Trajectories]:
+    """Noiseless rollouts of the local controllers ``traj`` [M, T, ...] and of a policy callable
+    ``(t, x, eps_t) -> u`` from the M initial states x0 [M, dX].
+
+    With MJX both run as one batched rollout of 2M trajectories (the controller chosen per member
+    by a flag), so a program that needs both holds one instance of MJX's step instead of two:
+    each instance costs seconds of compilation. With C MuJoCo they stay two rollouts (the local
+    controllers' one host callback per rollout is faster there). Returns (Trajectories [M, T, ...]
+    of the controllers, of the policy).
+    """
+    s = sim_lib.make_sim(cfg.sim)
+    if s.backend == "mujoco":
+        return execute(cfg, traj, x0), execute(cfg, policy_fn, x0)
+    eps = jnp.zeros((cfg.task.T, s.dU), x0.dtype)
+
+    def one(pol, x, use_policy):
+        act = lambda t, xx, e: jnp.where(  # noqa: E731
+            use_policy, policy_fn(t, xx, e), sim_lib.linear_gaussian_action(pol, t, xx, e))
+        return sim_lib.rollout(s, act, x, eps)
+
+    both = jax.vmap(jax.vmap(one, in_axes=(0, 0, None)), in_axes=(None, None, 0))(
+        traj, x0, jnp.array([False, True]))
+    return jax.tree_util.tree_map(lambda a: a[0], both), jax.tree_util.tree_map(lambda a: a[1], both)
+
+
 def controllers_mse(cfg: Config, controller, x0: jax.Array) -> tuple[Trajectories, jax.Array]:
     """Noiseless execution from the training initial states and its final-state MSE [M]."""
     out = execute(cfg, controller, x0)

@@ -294,14 +294,16 @@ def learning_curve(cfg: Config, traj: LinearGaussianPolicy, policy: PolicyState 
     """Noiseless execution from the training states of the new local controllers (the "LQR base
     layer") and of the global policy: their final-state MSE [M], end-effector paths and final
     states."""
-    out, mse = evaluate.controllers_mse(cfg, traj, x0)
-    curve = {"final_state_mse_lqr": mse, "eval_ee": out.ee, "eval_final_x": out.X[:, -1]}
-    if policy is not None:
-        mean = policies.mean_fn(policies.for_config(cfg), policy.params)
-        pol_out, pol_mse = evaluate.controllers_mse(cfg, mean, x0)
-        curve.update({"final_state_mse_policy": pol_mse, "policy_eval_ee": pol_out.ee,
-                      "policy_eval_final_x": pol_out.X[:, -1]})
-    return curve
+    if policy is None:
+        out, mse = evaluate.controllers_mse(cfg, traj, x0)
+        return {"final_state_mse_lqr": mse, "eval_ee": out.ee, "eval_final_x": out.X[:, -1]}
+    mean = policies.mean_fn(policies.for_config(cfg), policy.params)
+    out, pol_out = evaluate.execute_pair(cfg, traj, mean, x0)  # one MJX rollout program for both
+    target = tasks.target_state(cfg.task, x0.dtype)
+    return {"final_state_mse_lqr": evaluate.final_state_mse(out.X[:, -1], target), "eval_ee": out.ee,
+            "eval_final_x": out.X[:, -1],
+            "final_state_mse_policy": evaluate.final_state_mse(pol_out.X[:, -1], target),
+            "policy_eval_ee": pol_out.ee, "policy_eval_final_x": pol_out.X[:, -1]}
 
 
 # ---------------------------------------------------------------------------------------------
