@@ -11,7 +11,7 @@ robustness states, and reports per seed, separately for the successful and the f
 - ``|q̇_T|``: joint-speed norm at the last step (an arm still moving vs one at rest off target);
 - the joints whose final error exceeds 0.1 rad, counted over the failures;
 - at the target state x*: ‖u(x*)‖ (non-zero means a steady-state offset) and ρ, the spectral
-  radius of the closed loop x' = f(x, u(x)) linearised there by central differences (ρ ≥ 1: the
+  radius of the closed loop x' = f(x, u(x)) linearised there (``gmr_jax.stability``; ρ ≥ 1: the
   policy cannot hold the target).
 
 Writes ``diagnostics.json`` and ``diagnostics.md`` into OUT and prints the table.
@@ -28,20 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import checkpoint, config, evaluate, policies, runner, tasks
+from gmr_jax import checkpoint, config, evaluate, policies, runner, stability, tasks
 from gmr_jax import sim as sim_lib
 from gmr_jax.policies.base import normalize_input
 
 JOINT_TOLERANCE = 0.1  # rad: a joint "failed" when its final error is above this
-
-
-def closed_loop_radius(cfg: config.Config, mean_fn, x_star: jax.Array, h: float = 1e-5) -> jax.Array:
-    """Spectral radius of ∂/∂x f(x, u(x)) at x* by central differences (works with any backend)."""
-    s = sim_lib.make_sim(cfg.sim)
-    f = lambda x: sim_lib.step(s, x, mean_fn(0, x, jnp.zeros(s.dU, x.dtype)))  # noqa: E731
-    eye = jnp.eye(x_star.shape[0], dtype=x_star.dtype)
-    cols = jax.vmap(lambda e: (f(x_star + h * e) - f(x_star - h * e)) / (2 * h))(eye)  # [dX, dX]
-    return jnp.max(jnp.abs(jnp.linalg.eigvals(cols.T)))
 
 
 def diagnose_seed(cfg: config.Config, params) -> dict:
@@ -64,10 +55,9 @@ def diagnose_seed(cfg: config.Config, params) -> dict:
     joint_err = jnp.abs(final[:, : s.dU] - target[: s.dU])
     speed = jnp.linalg.norm(final[:, s.dU:], axis=-1)
     u_star = mean_fn(0, target, jnp.zeros(s.dU, dtype))
-    rho = closed_loop_radius(cfg, mean_fn, target)
     return {"success": rob.success, "mse": rob.mse, "sat": sat, "xin0": xin0, "gain": gain,
             "speed": speed, "joint_err": joint_err, "u_star_norm": jnp.linalg.norm(u_star),
-            "rho_target": rho, "norm_scale": params.norm.scale}
+            "norm_scale": params.norm.scale}
 
 
 def _split(values, ok):
@@ -80,6 +70,11 @@ def diagnose_run(ckpt: pathlib.Path, name: str, cfg: config.Config, seeds: list[
     state, _ = checkpoint.restore(ckpt, runner.initial_state(cfg, seeds))
     rows, out_rows = [], []
     every = jax.tree_util.tree_map(np.asarray, jax.jit(jax.vmap(lambda p: diagnose_seed(cfg, p)))(state.policy.params))
+    # ρ of the closed loop at the target (gmr_jax.stability), per seed on the host
+    target = tasks.target_state(cfg.task, jax.tree_util.tree_leaves(state.policy.params)[0].dtype)
+    every["rho_target"] = np.array([stability.spectral_radius(stability.closed_loop_jacobians(
+        cfg, jax.tree_util.tree_map(lambda a: a[i], state.policy.params), target[None]))[0]
+        for i in range(len(seeds))])
     for i, seed in enumerate(seeds):
         d = {k: v[i] for k, v in every.items()}
         ok = d["success"]

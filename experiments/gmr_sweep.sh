@@ -5,7 +5,8 @@
 #   bash experiments/gmr_sweep.sh OUT [NAME=--set ... ...]
 #
 # Without NAME=ARGS pairs it runs the default list below. Results: OUT/NAME/{summary.md,
-# results.json, diagnostics.md} and OUT/NAME.log.
+# results.json, diagnostics.md} and OUT/NAME.log. Environment: ALGORITHM (gmr), SCENARIO (A),
+# SEEDS (6), EXTRA (arguments added to every run, e.g. "--iterations 2" for a smoke test).
 set -u
 OUT=${1:?usage: bash experiments/gmr_sweep.sh OUT [NAME=ARGS ...]}
 shift
@@ -29,7 +30,7 @@ for spec in "$@"; do
   (
     # shellcheck disable=SC2086  # args is a list of words on purpose
     python -m experiments.reach --algorithm "$ALGORITHM" --scenario "$SCENARIO" --seeds "$SEEDS" \
-      --no-plots --out "$OUT/$name" $args > "$OUT/$name.log" 2>&1 \
+      --no-plots --out "$OUT/$name" $args ${EXTRA:-} > "$OUT/$name.log" 2>&1 \
       && python -m experiments.diagnose "$OUT/$name" >> "$OUT/$name.log" 2>&1
     echo "$name: exit $?" >> "$OUT/status.txt"
   ) &

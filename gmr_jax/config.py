@@ -380,6 +380,9 @@ class MLPConfig:
       init_var: exploration variance per action dimension before the first S-step (toolbox 0.1).
       ent_reg: entropy regulariser of the closed-form variance, var = 1/diag(A + 2·ent_reg)
         (toolbox 0).
+      input_squash: c > 0 feeds the network c·tanh(x̃/c) instead of the standardised state x̃
+        (GMR's ``encoder_squash`` on the MLP, for the ablation "does the bound alone make the
+        plain MLP robust?"); 0, the default, is the paper's network.
     """
 
     hidden: tuple[int, ...] = (64, 64)
@@ -388,9 +391,11 @@ class MLPConfig:
     init_std: float = 0.01
     init_var: float = 0.1
     ent_reg: float = 0.0
+    input_squash: float = 0.0
 
     def __post_init__(self):
         check_int_tuple("mlp.hidden", self.hidden)
+        check_nonnegative("mlp.input_squash", self.input_squash)
         check_choice("mlp.activation", self.activation, ACTIVATIONS)
         check_choice("mlp.init", self.init, MLP_INITS)
         check_positive("mlp.init_std", self.init_std)

@@ -21,10 +21,13 @@ def _spd(rng, n, count):
     return A @ np.transpose(A, (0, 2, 1)) / n + 0.5 * np.eye(n)
 
 
-def _numpy_forward(params: PolicyParams, x):
-    """Independent forward pass: normalise, Dense + ReLU per hidden layer, linear output."""
+def _numpy_forward(params: PolicyParams, x, squash: float = 0.0):
+    """Independent forward pass: normalise (and bound by c·tanh(·/c)), Dense + ReLU per hidden
+    layer, linear output."""
     layers = params.net["params"]
     h = np.asarray(x) * np.asarray(params.norm.scale) + np.asarray(params.norm.bias)
+    if squash > 0:
+        h = squash * np.tanh(h / squash)
     names = sorted(layers, key=lambda s: int(s.split("_")[1]))
     for i, name in enumerate(names):
         h = h @ np.asarray(layers[name]["kernel"]) + np.asarray(layers[name]["bias"])
@@ -162,3 +165,21 @@ def test_sstep_data_fill_zeros():
     assert isinstance(data, SStepData)
     assert data.K.shape == (4, dU, dX) and data.k.shape == (4, dU) and data.state_cov.shape == (4, dX, dX)
     np.testing.assert_array_equal(data.wt, np.ones(4))
+
+
+def test_input_squash_bounds_what_the_network_sees():
+    """``MLPConfig.input_squash`` (the ablation of GMR's encoder bound): the mean and the packed
+    S-step rows both see c·tanh(x̃/c)."""
+    squashed = make_policy("mlp", MLPConfig(hidden=(16, 8), input_squash=0.5))
+    params = _params_with_norm(squashed)
+    x = 4.0 * np.random.default_rng(2).normal(size=(7, dX))  # far out: the bound matters
+    ref, tol = measured_tol(lambda p, xx: _numpy_forward(p, xx, 0.5), (params, x), SAFETY)
+    assert_trees_within(squashed.mean(params, jnp.asarray(x)), ref, tol)
+    plain = make_policy("mlp", MLPConfig(hidden=(16, 8)))
+    assert not np.allclose(np.asarray(plain.mean(params, jnp.asarray(x))), ref)
+    data = make_sstep_data(jnp.asarray(x), jnp.zeros((7, dU)), jnp.broadcast_to(jnp.eye(dU), (7, dU, dU)))
+    rows = squashed.training.rows(params, data)
+    xn = np.asarray(x) * np.asarray(params.norm.scale) + np.asarray(params.norm.bias)
+    np.testing.assert_allclose(np.asarray(rows)[:, :dX], 0.5 * np.tanh(xn / 0.5), rtol=1e-14)
+    with pytest.raises(ValueError, match="input_squash"):
+        MLPConfig(input_squash=-1.0)

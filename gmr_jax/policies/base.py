@@ -175,6 +175,12 @@ def normalize_input(norm: Normalization, x: Array) -> Array:
     return x * norm.scale + norm.bias
 
 
+def squash(xn: Array, c: float) -> Array:
+    """c·tanh(x̃/c) elementwise: the standardised state x̃ bounded to (−c, c), linear near 0;
+    c = 0 leaves x̃ as it is (the paper's networks see x̃ unbounded)."""
+    return xn if c <= 0 else c * jnp.tanh(xn / c)
+
+
 def make_sstep_data(x, tgt_mu, tgt_prc, wt=None, K=None, k=None, state_cov=None) -> SStepData:
     """Build :class:`SStepData` from the MLP's fields, filling the GMR-only fields with zeros.
 

@@ -74,7 +74,7 @@ from gmr_jax.config import GMRConfig
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
                                    default_float, dense_chain, dense_layout, dense_stack,
                                    dense_value_and_grad, flax_dense_layers, flax_dense_params,
-                                   identity_normalization, normalize_input, pack_dense, pack_rows,
+                                   identity_normalization, normalize_input, pack_dense, pack_rows, squash,
                                    symmetrize, target_logdet, unpack_dense, unpack_rows)
 from gmr_jax.policies.mlp import closed_form_variance
 
@@ -462,9 +462,7 @@ def _network_functions(cfg: GMRConfig) -> SimpleNamespace:
 
     def encoder_input(norm: Normalization, x):
         """What h_enc sees: x̃, or c·tanh(x̃/c) with c = encoder_squash > 0 (bounded far away)."""
-        xn = normalize_input(norm, x)
-        c = cfg.encoder_squash
-        return xn if c <= 0 else c * jnp.tanh(xn / c)
+        return squash(normalize_input(norm, x), cfg.encoder_squash)
 
     def encode(params: PolicyParams, x):
         """x [..., dX] (raw) -> (μ_z, log σ²_z), each [..., latent]."""

@@ -23,7 +23,7 @@ from gmr_jax.config import MLPConfig
 from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, TrainingForm, default_float,
                                    dense_chain, dense_layout, dense_stack, dense_value_and_grad,
                                    flax_dense_layers, flax_dense_params, identity_normalization,
-                                   normalize_input, pack_dense, pack_rows, quadratic_rows, symmetrize,
+                                   normalize_input, pack_dense, pack_rows, quadratic_rows, squash, symmetrize,
                                    unpack_dense, unpack_rows, weighted_action_error)
 
 
@@ -101,10 +101,15 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
         return PolicyParams(net=net, norm=identity_normalization(dX, dtype),
                             var=jnp.full((dU,), cfg.init_var, dtype))
 
+    def network_input(norm, x):
+        """What the network sees: x̃, or c·tanh(x̃/c) with c = input_squash > 0 (an ablation:
+        GMR's encoder bound on the plain MLP)."""
+        return squash(normalize_input(norm, x), cfg.input_squash)
+
     def mean(params: PolicyParams, x):
         """Deterministic action: x [..., dX] -> u [..., dU]."""
         dU = params.var.shape[-1]
-        return module(dU).apply(params.net, normalize_input(params.norm, x))
+        return module(dU).apply(params.net, network_input(params.norm, x))
 
     def covariance(params: PolicyParams, x):
         """State-independent covariance diag(var): x [dX] -> [dU, dU]."""
@@ -134,7 +139,7 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
         return {"params": flax_dense_params(unpack_dense(lay, theta.reshape(lay.array_shape)))}
 
     def rows(params: PolicyParams, data: SStepData):
-        return pack_rows(LossRows(xn=normalize_input(params.norm, data.x), tgt_mu=data.tgt_mu,
+        return pack_rows(LossRows(xn=network_input(params.norm, data.x), tgt_mu=data.tgt_mu,
                                   prc=symmetrize(data.tgt_prc)))
 
     def packed_value_and_grad(params: PolicyParams, theta, rows, noise):
