@@ -44,10 +44,7 @@ def table(results: dict, threshold: float = 0.01) -> list[str]:
     for (scenario, algorithm), h in curves.items():
         # [seeds, iterations, M] -> [iterations, seeds, M], as in a run's history
         run = {"history": {c: np.swapaxes(np.asarray(v, float), 0, 1) for c, v in h.items()}}
-        it = report.success_iterations(run, threshold)
-        if "policy" in it:
-            it["lag"] = it["policy"] - it["lqr"]
-        for name, values in it.items():
+        for name, values in report.success_iterations(run, threshold).items():
             lines.append(f"| {scenario}/{algorithm} | learning speed: {name} | {len(values)} | "
                          f"{stats.over_seeds(values).format()} |")
     return lines

@@ -307,7 +307,8 @@ def success_iterations(run, threshold: float) -> dict:
     """Learning speed per seed: the first iteration (1-based) from which the noiseless execution's
     final-state MSE is below ``threshold`` from every training condition at that and every later
     iteration, for the LQR base layer ("lqr") and the global policy ("policy"); iterations + 1 for
-    a seed that never gets there (counted so: a conservative value). Returns {curve: [S] int}."""
+    a seed that never gets there (counted so: a conservative value). Returns {"lqr", "policy",
+    "lag" (policy − lqr, with a policy): [S] int}."""
     out = {}
     for curve, name in (("final_state_mse_lqr", "lqr"), ("final_state_mse_policy", "policy")):
         h = run["history"].get(curve)
@@ -316,6 +317,8 @@ def success_iterations(run, threshold: float) -> dict:
         ok = (np.asarray(h) < threshold).all(axis=-1)  # [iterations, S]: every condition succeeds
         stays = np.flip(np.logical_and.accumulate(np.flip(ok, 0), axis=0), 0)  # ok at i and later
         out[name] = np.where(stays.any(axis=0), stays.argmax(axis=0) + 1, ok.shape[0] + 1)
+    if "policy" in out:
+        out["lag"] = out["policy"] - out["lqr"]
     return out
 
 
@@ -330,7 +333,7 @@ def learning_speed_line(algorithm: str, run, threshold: float) -> str | None:
     return (f"- Learning speed (first iteration from which the final-state MSE from every training "
             f"condition stays below {threshold}; mean [95 % CI], IQM (range) over seeds, 'never' "
             f"counted as {n + 1}): LQR base layer {fmt(it['lqr'])}; {_label(algorithm, 'final_state_mse_policy')} "
-            f"{fmt(it['policy'])}; the policy's lag {fmt(it['policy'] - it['lqr'])} iterations"
+            f"{fmt(it['policy'])}; the policy's lag {fmt(it['lag'])} iterations"
             + (" (paper: GMR imitates the base layer after about 2 iterations, MDGPS 2–4× later)."
                if algorithm in ("gmr", "mdgps") else "."))
 

@@ -336,18 +336,20 @@ _mjx_step_jit = jax.jit(_mjx_step, static_argnums=0)
 
 
 class _HostStepper:
-    """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``."""
+    """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``
+    (``nthread`` > 0: on that many threads)."""
 
-    # Stepping is single-threaded inside the callback: the callback already runs on an XLA:CPU
-    # thread, and a threaded ``mujoco.rollout`` would compete with XLA's own pool for the cores.
+    # Stepping is single-threaded inside the callback (the default): the callback already runs on
+    # an XLA:CPU thread, and a threaded ``mujoco.rollout`` would compete with XLA's own pool for
+    # the cores. Host code outside XLA (gmr_jax.stability) asks for threads.
 
-    def __init__(self, model: mujoco.MjModel, substeps: int):
+    def __init__(self, model: mujoco.MjModel, substeps: int, nthread: int = 0):
         from mujoco import rollout as mj_rollout
 
         self.model = model
         self.substeps = substeps
-        self.serial = mj_rollout.Rollout(nthread=0)
-        self.data = mujoco.MjData(model)
+        self.serial = mj_rollout.Rollout(nthread=nthread)
+        self.data = [mujoco.MjData(model) for _ in range(nthread)] if nthread else mujoco.MjData(model)
         self.nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         d = mujoco.MjData(model)
         self.template = np.empty(self.nstate)

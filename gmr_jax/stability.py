@@ -77,13 +77,8 @@ def _host_step(s: sim_lib.Sim, x: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _threaded_stepper(model: mujoco.MjModel, substeps: int):
-    from mujoco import rollout as mj_rollout
-
-    stepper = sim_lib._HostStepper(model, substeps)
-    stepper.serial = mj_rollout.Rollout(nthread=os.cpu_count() or 1)
-    stepper.data = [mujoco.MjData(model) for _ in range(os.cpu_count() or 1)]
-    return stepper
+def _threaded_stepper(model: mujoco.MjModel, substeps: int) -> sim_lib._HostStepper:
+    return sim_lib._HostStepper(model, substeps, nthread=os.cpu_count() or 1)
 
 
 def spectral_radius(J) -> np.ndarray:

@@ -66,7 +66,7 @@ def test_results_summary_and_figures(tmp_path):
             "38.5 [27.0, 50.0], IQM 38.5 (27–50) |") in text
     assert recs[("A", "gmr", 1)]["stability"]["target_radius"] == 1.1
     assert text.count("- Learning speed") == 4
-    assert again["learning_speed"]["A/gmr"] == {"lqr": [4, 4], "policy": [4, 4]}  # never below 0.01
+    assert again["learning_speed"]["A/gmr"] == {"lqr": [4, 4], "policy": [4, 4], "lag": [0, 0]}  # never below 0.01
     report.plot_all(tmp_path, configs, runs)
     for name in ("learning_curves.png", "paths.png", "robustness.png", "seeds.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
