@@ -52,7 +52,7 @@ def diagnose_seed(cfg: config.Config, params) -> dict:
     gain = jnp.mean(jnp.sqrt(jnp.sum(jac ** 2, axis=(-2, -1))), axis=-1)
     target = tasks.target_state(cfg.task, dtype)
     final = rob.final_x
-    joint_err = jnp.abs(final[:, : s.dU] - target[: s.dU])
+    joint_err = jnp.abs(evaluate.task_error(cfg, final)[:, : s.dU])
     speed = jnp.linalg.norm(final[:, s.dU:], axis=-1)
     u_star = mean_fn(0, target, jnp.zeros(s.dU, dtype))
     return {"success": rob.success, "mse": rob.mse, "sat": sat, "xin0": xin0, "gain": gain,

@@ -24,7 +24,7 @@ import jax
 import mujoco
 import numpy as np
 
-from gmr_jax import config, evaluate, runner, sim as sim_lib, tasks
+from gmr_jax import config, evaluate, runner, sim as sim_lib
 
 
 def without_contacts(cfg: config.Config, folder: pathlib.Path) -> config.Config:
@@ -40,7 +40,7 @@ def describe(cfg: config.Config, params) -> list[str]:
     """Lines about one policy's final states from the robustness states."""
     rob = evaluate.robustness(cfg, params)
     fx = np.asarray(rob.final_x)
-    target = np.asarray(tasks.target_state(cfg.task))
+    err_all = np.abs(np.asarray(evaluate.task_error(cfg, rob.final_x)))
     nq = fx.shape[-1] // 2
     success = np.asarray(rob.success)
     lines = [f"MSE < {cfg.task.success_threshold}: {int(success.sum())}/{success.size}"]
@@ -50,7 +50,7 @@ def describe(cfg: config.Config, params) -> list[str]:
         for label, sel in ((f"{name}, MSE too large", ok & ~success), (f"MSE below, not {name}", success & ~ok),
                            ("neither", ~success & ~ok)):
             if sel.any():
-                err = np.median(np.abs(fx[sel, :nq] - target[:nq]), axis=0)
+                err = np.median(err_all[sel, :nq], axis=0)
                 speed = np.median(np.abs(fx[sel, nq:]).max(axis=1))
                 lines.append(f"  {label} ({int(sel.sum())}): median |q - q*| per joint "
                              f"{np.array2string(err, precision=3)} rad, median largest |q̇| {speed:.3g} rad/s")

@@ -36,6 +36,11 @@ def check_nonnegative(name: str, value) -> None:
         raise ValueError(f"{name}={value!r}: must be a number ≥ 0")
 
 
+def check_bool(name: str, value) -> None:
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}={value!r}: must be True or False")
+
+
 def check_choice(name: str, value, allowed) -> None:
     if value not in allowed:
         raise ValueError(f"{name}={value!r}: allowed values are {tuple(allowed)}")
@@ -86,6 +91,8 @@ class SimConfig:
             raise ValueError(f"sim.scene={self.scene!r}: must be a scene name or an MJCF path")
         check_positive("sim.control_dt", self.control_dt)
         check_positive_int("sim.substeps", self.substeps)
+        check_bool("sim.gravity_compensation", self.gravity_compensation)
+        check_bool("sim.clip_torques", self.clip_torques)
         check_choice("sim.backend", self.backend, BACKENDS)
 
     @property
@@ -124,6 +131,9 @@ class TaskConfig:
       T: horizon in control steps (80 = 4 s at 20 Hz).
       success_threshold: headline final-state MSE threshold (the paper's table).
       success_threshold_loose: the paper's text threshold.
+      wrap_angles: measure the continuous joints' angle errors (the task's ``continuous_joints``)
+        the shortest way round, wrapped to [−π, π), in the success test and the state cost; False
+        (the authors' toolbox): raw angle differences.
     """
 
     name: str = "reach"
@@ -131,6 +141,7 @@ class TaskConfig:
     T: int = 80
     success_threshold: float = 0.01
     success_threshold_loose: float = 0.1
+    wrap_angles: bool = False
 
     def __post_init__(self):
         from gmr_jax import tasks  # the registry imports this module
@@ -140,6 +151,7 @@ class TaskConfig:
         check_positive_int("task.T", self.T)
         check_positive("task.success_threshold", self.success_threshold)
         check_positive("task.success_threshold_loose", self.success_threshold_loose)
+        check_bool("task.wrap_angles", self.wrap_angles)
 
     @property
     def num_conditions(self) -> int:

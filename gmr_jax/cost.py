@@ -197,7 +197,20 @@ def _pad_x_block(gx: Array, Hx: Array, dU: int) -> tuple[Array, Array]:
 # Terms
 
 
-def state_cost(target, wp, l1, l2, alpha, ramp_w, norm: str = "l1l2") -> CostFn:
+def wrap_angles(d: Array, entries: Sequence[int]) -> Array:
+    """d [..., dX] with the entries ``entries`` (angle differences of continuous joints) wrapped to
+    [−π, π), the shortest way round; the other entries unchanged. ∂/∂d is 1 wherever the wrap is
+    continuous (everywhere except at ±π), so a quadratic expansion in d stays exact there."""
+    if not entries:
+        return d
+    idx = np.asarray(entries)
+    two_pi = jnp.asarray(2 * np.pi, d.dtype)
+    wrapped = d[..., idx] - two_pi * jnp.floor((d[..., idx] + two_pi / 2) / two_pi)
+    return d.at[..., idx].set(wrapped)
+
+
+def state_cost(target, wp, l1, l2, alpha, ramp_w, norm: str = "l1l2",
+               wrapped: Sequence[int] = ()) -> CostFn:
     """Toolbox ``CostState``: a norm of d = x − target (Jd = I, Jdd = 0, so its expansion is exact).
 
     Args:
@@ -206,6 +219,7 @@ def state_cost(target, wp, l1, l2, alpha, ramp_w, norm: str = "l1l2") -> CostFn:
       l1, l2, alpha: norm parameters (see :func:`l1l2_term`).
       ramp_w: [T] ramp (see :func:`ramp`); step t uses weights wp · ramp_w[t].
       norm: "l1l2" (toolbox default of CostState) or "logl2".
+      wrapped: entries of d wrapped to [−π, π) (:func:`wrap_angles`; the toolbox wraps none).
 
     Returns:
       A :class:`CostFn`.
@@ -220,7 +234,7 @@ def state_cost(target, wp, l1, l2, alpha, ramp_w, norm: str = "l1l2") -> CostFn:
     def terms(x, t):
         dtype = x.dtype
         w = jnp.asarray(wp, dtype) * jnp.asarray(ramp_w, dtype)[t]
-        return norm_fn(x - jnp.asarray(target, dtype), w, l1, l2, alpha)
+        return norm_fn(wrap_angles(x - jnp.asarray(target, dtype), wrapped), w, l1, l2, alpha)
 
     def value(x, u, t):
         return terms(x, t)[0]

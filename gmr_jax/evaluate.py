@@ -14,6 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from gmr_jax import cost as cost_lib
 from gmr_jax import policies, tasks
 from gmr_jax import sim as sim_lib
 from gmr_jax.config import Config
@@ -50,16 +51,29 @@ class Robustness(NamedTuple):
     extra: dict
 
 
-def final_state_mse(x_final: jax.Array, target: jax.Array) -> jax.Array:
+def final_state_mse(x_final: jax.Array, target: jax.Array, wrapped: tuple[int, ...] = ()) -> jax.Array:
     """Final-state mean squared error over the state entries (rad, rad/s), gmr-method.md §3.1.
 
     Args:
       x_final: [..., dX] final states.
       target: [dX] target state.
+      wrapped: entries whose errors are wrapped to [−π, π) first (``tasks.wrapped_entries``).
     Returns:
       [...] MSE per state.
     """
-    return jnp.mean((x_final - target) ** 2, axis=-1)
+    return jnp.mean(cost_lib.wrap_angles(x_final - target, wrapped) ** 2, axis=-1)
+
+
+def task_error(cfg: Config, x: jax.Array) -> jax.Array:
+    """x − target [..., dX] for states x [..., dX], with the task's angle convention
+    (``TaskConfig.wrap_angles``)."""
+    return cost_lib.wrap_angles(x - tasks.target_state(cfg.task, x.dtype), tasks.wrapped_entries(cfg.task))
+
+
+def task_mse(cfg: Config, x_final: jax.Array) -> jax.Array:
+    """The final-state MSE [...] of final states x_final [..., dX] against the task's target, with
+    the task's angle convention (:func:`task_error`)."""
+    return jnp.mean(task_error(cfg, x_final) ** 2, axis=-1)
 
 
 def execute(cfg: Config, controller, x0: jax.Array) -> Trajectories:
@@ -106,7 +120,7 @@ def execute_pair(cfg: Config, traj: LinearGaussianPolicy, policy_fn, x0: jax.Arr
 def controllers_mse(cfg: Config, controller, x0: jax.Array) -> tuple[Trajectories, jax.Array]:
     """Noiseless execution from the training initial states and its final-state MSE [M]."""
     out = execute(cfg, controller, x0)
-    return out, final_state_mse(out.X[:, -1], tasks.target_state(cfg.task, x0.dtype))
+    return out, task_mse(cfg, out.X[:, -1])
 
 
 def _global_policy(cfg: Config):
@@ -147,9 +161,8 @@ def robustness(cfg: Config, params, x0: jax.Array | None = None) -> Robustness:
 def summarize_robustness(cfg: Config, x0: jax.Array, out: Trajectories) -> Robustness:
     """Robustness from executed rollouts: x0 [S, dX] and their Trajectories [S, T, ...] (e.g.
     from :func:`execute_policy`, when the caller needs the trajectories too)."""
-    target = tasks.target_state(cfg.task, x0.dtype)
     final_x = out.X[:, -1]
-    mse = final_state_mse(final_x, target)
+    mse = task_mse(cfg, final_x)
     train_x0 = tasks.initial_states(cfg.task, x0.dtype)
     distance = jnp.min(jnp.linalg.norm(x0[:, None, :] - train_x0[None], axis=-1), axis=1)
     # A diverged rollout (non-finite state) counts as a failure, never as a success.

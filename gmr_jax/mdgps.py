@@ -299,10 +299,9 @@ def learning_curve(cfg: Config, traj: LinearGaussianPolicy, policy: PolicyState 
         return {"final_state_mse_lqr": mse, "eval_ee": out.ee, "eval_final_x": out.X[:, -1]}
     mean = policies.mean_fn(policies.for_config(cfg), policy.params)
     out, pol_out = evaluate.execute_pair(cfg, traj, mean, x0)  # one MJX rollout program for both
-    target = tasks.target_state(cfg.task, x0.dtype)
-    return {"final_state_mse_lqr": evaluate.final_state_mse(out.X[:, -1], target), "eval_ee": out.ee,
+    return {"final_state_mse_lqr": evaluate.task_mse(cfg, out.X[:, -1]), "eval_ee": out.ee,
             "eval_final_x": out.X[:, -1],
-            "final_state_mse_policy": evaluate.final_state_mse(pol_out.X[:, -1], target),
+            "final_state_mse_policy": evaluate.task_mse(cfg, pol_out.X[:, -1]),
             "policy_eval_ee": pol_out.ee, "policy_eval_final_x": pol_out.X[:, -1]}
 
 

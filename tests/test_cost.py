@@ -168,6 +168,47 @@ def test_state_cost_expansion_is_exact(norm):
         assert np.all(c[dX:] == 0) and np.all(C[dX:] == 0) and np.all(C[:, dX:] == 0)
 
 
+def test_wrap_angles_is_the_shortest_way_round():
+    d = np.concatenate([np.linspace(-4 * np.pi, 4 * np.pi, 41), [np.pi, -np.pi]])
+    x = np.stack([d, d, d], axis=-1)  # [43, 3]; wrap entries 0 and 2
+    w = np.asarray(cost.wrap_angles(jnp.asarray(x), (0, 2)))
+    np.testing.assert_array_equal(w[:, 1], d)  # an entry not named is untouched
+    ref = np.angle(np.exp(1j * d))  # an independent wrap, to (−π, π]
+    ref[np.isclose(ref, np.pi, atol=1e-12)] = -np.pi  # ours is [−π, π)
+    # d − 2πk with k exact: |d| ≤ 4π, so one rounding of 2πk and one of the difference.
+    for k in (0, 2):
+        np.testing.assert_allclose(w[:, k], ref, rtol=0, atol=linear_tol(4 * np.pi, 2))
+        assert np.all((w[:, k] >= -np.pi) & (w[:, k] < np.pi))
+    np.testing.assert_array_equal(cost.wrap_angles(jnp.asarray(x), ()), x)
+
+
+@pytest.mark.parametrize("norm", ["l1l2", "logl2"])
+def test_wrapped_state_cost_is_the_raw_cost_of_the_wrapped_state(norm):
+    """Wrapping joint 0 and 3: at x, the cost and its expansion equal the raw cost's at the
+    state moved by whole turns onto the target's side (the wrap's derivative is 1 there)."""
+    wp = rng.uniform(0.5, 2.0, size=dX)
+    r = cost.ramp(T, "constant", 1.0)
+    wrapped = cost.state_cost(TARGET, wp, 0.5, 1.5, 1e-2, r, norm=norm, wrapped=(0, 3))
+    raw = cost.state_cost(TARGET, wp, 0.5, 1.5, 1e-2, r, norm=norm)
+    x = TARGET + 0.3 * rng.normal(size=dX)
+    turns = np.zeros(dX)
+    turns[0], turns[3] = 2 * np.pi, -4 * np.pi
+    u = rng.normal(size=dU)
+    got = jax.jit(wrapped.expand, static_argnums=2)(x + turns, u, 1)
+    want = jax.jit(raw.expand, static_argnums=2)(x, u, 1)
+    # The wrapped difference equals x − target up to two roundings at magnitude |x| + 4π (x + turns,
+    # then the subtraction of 2πk): the tolerance is the raw expansion's spread when x moves by
+    # that much, SAFETY times (tests/tolerances.py).
+    delta = linear_tol(1.0, 2) * (np.max(np.abs(x)) + 4 * np.pi)
+    moved = [raw.expand(x + delta * np.random.default_rng(s).uniform(-1, 1, dX), u, 1) for s in (1, 2)]
+    tol = [SAFETY * (max(np.max(np.abs(np.asarray(m[i]) - np.asarray(want[i]))) for m in moved)
+                     + np.finfo(np.float64).eps * np.max(np.abs(np.asarray(want[i])))) for i in range(3)]
+    assert_tolerances_small(tuple(want), tol, 1e-10)
+    assert_trees_within(tuple(got), tuple(want), tol)
+    # The raw cost sees the whole turns.
+    assert float(raw(x + turns, u, 1)) > float(raw(x, u, 1)) + 1.0
+
+
 def test_action_cost():
     wu = rng.uniform(0.1, 1.0, size=dU)
     cfn = cost.action_cost(wu)

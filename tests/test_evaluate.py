@@ -118,3 +118,21 @@ def test_execute_pair_equals_the_two_rollouts(backend):
         tol = SAFETY * float(jnp.max(jnp.abs(nudged.X - ref.X))) + eps * size
         assert float(jnp.max(jnp.abs(got.X - ref.X))) <= tol
         np.testing.assert_array_equal(np.asarray(got.X[:, 0]), np.asarray(x0))
+
+
+def test_wrap_angles_counts_whole_turns_of_continuous_joints_as_no_error():
+    wrap = config.reach("A", "mdgps", task__wrap_angles=True)
+    raw = config.reach("A", "mdgps")
+    target = np.asarray(tasks.target_state(raw.task))
+    turned = target.copy()
+    turned[3] -= 2 * np.pi  # joint 4 (continuous): the target's 4.45 rad seen as −1.83
+    limited = target.copy()
+    limited[1] -= 2 * np.pi  # joint 2 has limits: a turn is a real error
+    x = jnp.asarray(np.stack([turned, limited]))
+    got_wrap, got_raw = np.asarray(evaluate.task_mse(wrap, x)), np.asarray(evaluate.task_mse(raw, x))
+    turn_mse = (2 * np.pi) ** 2 / 12
+    # Two roundings at magnitude 2π + 4.45 (the turn, the wrap), squared and averaged.
+    assert got_wrap[0] <= (linear_tol(1.0, 2) * (2 * np.pi + 4.45)) ** 2
+    assert_close(got_wrap[1], turn_mse, linear_tol(1.0, 14))
+    assert_close(got_raw, [turn_mse, turn_mse], linear_tol(1.0, 14))
+    assert tasks.wrapped_entries(wrap.task) == (0, 3, 4, 5) and tasks.wrapped_entries(raw.task) == ()

@@ -86,7 +86,9 @@ def test_config_fields_are_validated_where_they_are_defined():
                                       ("step", "step_rule", "x", "step.step_rule='x'"),
                                       ("dynamics", "max_samples", -1, "dynamics.max_samples=-1"),
                                       ("cost", "state_ramp", "cubic", "cost.state_ramp='cubic'"),
-                                      ("task", "T", 0, "task.T=0")):
+                                      ("task", "T", 0, "task.T=0"),
+                                      ("task", "wrap_angles", 1, "task.wrap_angles=1"),
+                                      ("sim", "clip_torques", "no", "sim.clip_torques='no'")):
         with pytest.raises(ValueError, match=needle.replace("(", r"\(").replace(".", r"\.")):
             dataclasses.replace(getattr(cfg, group), **{field: bad})
     with pytest.raises(ValueError, match="needs a gmr_jax.tasks.reach.CostConfig"):

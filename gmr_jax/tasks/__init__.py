@@ -52,6 +52,8 @@ class Task(NamedTuple):
       sweep_radii: the default radii of the disturbance sweep; sweep_per_radius: states per
         radius and condition.
       paper_robustness: (scenario, algorithm) -> the paper's successes out of 50.
+      continuous_joints: the joints without limits (their angles are only defined modulo 2π);
+        ``TaskConfig.wrap_angles`` wraps their angle errors in the success test and the cost.
       mjx_min_rollouts: on a GPU, the rollout batch (seeds × conditions × samples) from which
         MJX steps this task's scene faster than C MuJoCo on the host, by measurement
         (benchmarks/RESULTS.md); None where MJX is slower at every measured batch (contacts).
@@ -73,6 +75,7 @@ class Task(NamedTuple):
     sweep_per_radius: int
     paper_robustness: Mapping[tuple[str, str], int]
     mjx_min_rollouts: int | None = 32
+    continuous_joints: tuple[int, ...] = ()
 
 
 def get(name: str) -> Task:
@@ -99,6 +102,12 @@ def initial_states(task: "TaskConfig", dtype=None) -> jax.Array:
 def target_state(task: "TaskConfig", dtype=None) -> jax.Array:
     """The target state [dX] of the final-state MSE."""
     return jnp.asarray(get(task.name).target_state(task), dtype=_float(dtype))
+
+
+def wrapped_entries(task: "TaskConfig") -> tuple[int, ...]:
+    """The state entries whose errors are wrapped to [−π, π): the task's continuous joints' angles
+    where ``task.wrap_angles``, else none."""
+    return get(task.name).continuous_joints if task.wrap_angles else ()
 
 
 def at_rest(q) -> np.ndarray:

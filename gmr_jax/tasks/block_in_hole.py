@@ -240,4 +240,5 @@ TASK = Task(
     target_state=target_state, make_cost=make_cost, robustness_states=robustness_states,
     disturbed_states=disturbed_states, success_extra=success_extra,
     sweep_radii=(0.0, 0.1, 0.25, 0.5, 1.0, 2.0), sweep_per_radius=10,
-    paper_robustness=PAPER_ROBUSTNESS, mjx_min_rollouts=None)
+    paper_robustness=PAPER_ROBUSTNESS, mjx_min_rollouts=None,
+    continuous_joints=jaco.CONTINUOUS_JOINTS)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from gmr_jax.config import InitLQRConfig
 
+# Joints 1, 4, 5 and 6 turn without limit (jaco_mjcf: no range); 0-based indices.
+CONTINUOUS_JOINTS = (0, 3, 4, 5)
 GAINS = (7.09, 2.3, 1.5, 1.2, 1.8, 0.1)
 ACTION_WEIGHT = tuple(5e-3 / g for g in GAINS)
 # init_lqr with the authors' Jaco values: init_var 1, stiffness 1, stiffness_vel 0.25,

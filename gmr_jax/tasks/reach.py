@@ -20,6 +20,7 @@ import numpy as np
 from gmr_jax import cost as cost_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax.config import Config, TaskConfig, check_choice, check_nonnegative, check_number_tuple
+from gmr_jax import tasks
 from gmr_jax.tasks import Task, at_rest, disturb, jaco
 
 # Kinova actuator angles (rad) of the paper-era Jaco experiment (gmr-method.md §2).
@@ -93,7 +94,7 @@ def target_state(task: TaskConfig) -> np.ndarray:
 
 
 def reach_cost(cfg: CostConfig, target_x, T: int, ee_fn: Callable | None = None,
-               target_ee=None) -> cost_lib.CostFn:
+               target_ee=None, wrapped: tuple[int, ...] = ()) -> cost_lib.CostFn:
     """The reach cost of a :class:`CostConfig`.
 
     ℓ_t = ½ Σ wu u²                                        (action)
@@ -107,6 +108,7 @@ def reach_cost(cfg: CostConfig, target_x, T: int, ee_fn: Callable | None = None,
       T: horizon.
       ee_fn: q [6] -> [3]; needed only when cfg.ee_weight > 0.
       target_ee: [3] target end-effector position (default: ee_fn at the target's angles).
+      wrapped: state entries whose errors the state terms wrap to [−π, π) (``cost.wrap_angles``).
     """
     dX = len(cfg.state_wp)
     if np.shape(target_x) != (dX,):
@@ -115,9 +117,9 @@ def reach_cost(cfg: CostConfig, target_x, T: int, ee_fn: Callable | None = None,
     terms = [
         cost_lib.action_cost(cfg.action_weight),
         cost_lib.state_cost(target_x, cfg.state_wp, cfg.state_l1, cfg.state_l2, cfg.state_alpha,
-                            cost_lib.ramp(T, cfg.state_ramp, 1.0)),
+                            cost_lib.ramp(T, cfg.state_ramp, 1.0), wrapped=wrapped),
         cost_lib.state_cost(target_x, cfg.final_wp, cfg.final_l1, cfg.final_l2, cfg.final_alpha,
-                            cost_lib.ramp(T, "final_only", cfg.final_multiplier)),
+                            cost_lib.ramp(T, "final_only", cfg.final_multiplier), wrapped=wrapped),
     ]
     if cfg.ee_weight > 0:
         if ee_fn is None:
@@ -139,7 +141,7 @@ def make_cost(cfg: Config) -> cost_lib.CostFn:
     if cfg.cost.ee_weight > 0:
         s = sim_lib.make_sim(cfg.sim)
         ee_fn = lambda q: sim_lib.end_effector(s, q)  # noqa: E731
-    return reach_cost(cfg.cost, target, cfg.task.T, ee_fn=ee_fn)
+    return reach_cost(cfg.cost, target, cfg.task.T, ee_fn=ee_fn, wrapped=tasks.wrapped_entries(cfg.task))
 
 
 def robustness_states(cfg: Config, num: int, seed: int, dtype=None) -> jax.Array:
@@ -177,4 +179,5 @@ TASK = Task(
     sweep_radii=(0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0), sweep_per_radius=10,
     # MJX costs about the same for any batch on a GPU, C MuJoCo grows with it; they cross
     # between 10 and 60 rollouts (benchmarks/RESULTS.md)
-    paper_robustness=PAPER_ROBUSTNESS, mjx_min_rollouts=32)
+    paper_robustness=PAPER_ROBUSTNESS, mjx_min_rollouts=32,
+    continuous_joints=jaco.CONTINUOUS_JOINTS)
