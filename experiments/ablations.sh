@@ -7,8 +7,11 @@
 # GMR: with the encoder bound (the default) and as the paper describes it (no bound); the
 # paper's plant (its Gazebo arm had no effective torque limit) against the Jaco's peak torques,
 # with and without the bound; continuous joints' angle errors wrapped to [−π, π) in the success
-# test and the cost (task.wrap_angles) against raw angles; alpha 0.1 and 10 against 1. MDGPS:
-# the plain MLP, the MLP with GMR's bound on its input, the paper's plant, wrapped angles. The
+# test and the cost (task.wrap_angles) against raw angles; the same random arm configurations
+# with their continuous joints' angles within ±π of the target's (task.random_angles_around_target)
+# against the reset distribution's [−π, π]; alpha 0.1 and 10 against 1. MDGPS: the plain MLP,
+# the MLP with GMR's bound on its input, the paper's plant, wrapped angles, angles around the
+# target. The
 # 0.1 threshold (the paper's text) against 0.01 (its table) is in every summary. Naming CELLs
 # runs only those (e.g. to split the work over several commands of limited time). Each cell runs
 # through experiments/gmr_sweep.sh (side by side, then experiments.diagnose); the table with
@@ -26,6 +29,7 @@ GMR_CELLS=(
   "no_torque_limit=--set sim__clip_torques=False"
   "no_bound_no_torque_limit=--set gmr__encoder_squash=0.0 --set sim__clip_torques=False"
   "wrap=--set task__wrap_angles=True"
+  "around_target=--set task__random_angles_around_target=True"
   "alpha0.1=--set gmr__alpha=0.1"
   "alpha10=--set gmr__alpha=10.0"
 )
@@ -34,6 +38,7 @@ MDGPS_CELLS=(
   "bound=--set mlp__input_squash=1.0"
   "no_torque_limit=--set sim__clip_torques=False"
   "wrap=--set task__wrap_angles=True"
+  "around_target=--set task__random_angles_around_target=True"
 )
 # The cells of a list that are named on the command line (all when none is named).
 select_cells() {

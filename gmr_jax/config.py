@@ -134,6 +134,10 @@ class TaskConfig:
       wrap_angles: measure the continuous joints' angle errors (the task's ``continuous_joints``)
         the shortest way round, wrapped to [−π, π), in the success test and the state cost; False
         (the authors' toolbox): raw angle differences.
+      random_angles_around_target: represent the robustness test's random states' continuous
+        joints by the angles within [−π, π) of the target's (the same arm configurations, each
+        angle moved by whole turns); False: as the task draws them (reach: the authors' reset
+        distribution, [−π, π]).
     """
 
     name: str = "reach"
@@ -142,6 +146,7 @@ class TaskConfig:
     success_threshold: float = 0.01
     success_threshold_loose: float = 0.1
     wrap_angles: bool = False
+    random_angles_around_target: bool = False
 
     def __post_init__(self):
         from gmr_jax import tasks  # the registry imports this module
@@ -152,6 +157,7 @@ class TaskConfig:
         check_positive("task.success_threshold", self.success_threshold)
         check_positive("task.success_threshold_loose", self.success_threshold_loose)
         check_bool("task.wrap_angles", self.wrap_angles)
+        check_bool("task.random_angles_around_target", self.random_angles_around_target)
 
     @property
     def num_conditions(self) -> int:

@@ -137,8 +137,14 @@ def execute_policy(cfg: Config, params, x0: jax.Array) -> Trajectories:
 
 def robustness_states(cfg: Config, num: int = ROBUSTNESS_STATES, seed: int = ROBUSTNESS_KEY,
                       dtype=None) -> jax.Array:
-    """The task's fixed random initial states of the robustness test: [num, dX]."""
-    return tasks.of(cfg).robustness_states(cfg, num, seed, dtype or jnp.result_type(float))
+    """The task's fixed random initial states of the robustness test: [num, dX] (with
+    ``task.random_angles_around_target``, the continuous joints' angles moved by whole turns to
+    within [−π, π) of the target's: the same arm configurations)."""
+    x = tasks.of(cfg).robustness_states(cfg, num, seed, dtype or jnp.result_type(float))
+    if not cfg.task.random_angles_around_target:
+        return x
+    d = x - tasks.target_state(cfg.task, x.dtype)
+    return x - (d - cost_lib.wrap_angles(d, tasks.of(cfg).continuous_joints))  # whole turns; 0 elsewhere
 
 
 def robustness(cfg: Config, params, x0: jax.Array | None = None) -> Robustness:

@@ -136,3 +136,19 @@ def test_wrap_angles_counts_whole_turns_of_continuous_joints_as_no_error():
     assert_close(got_wrap[1], turn_mse, linear_tol(1.0, 14))
     assert_close(got_raw, [turn_mse, turn_mse], linear_tol(1.0, 14))
     assert tasks.wrapped_entries(wrap.task) == (0, 3, 4, 5) and tasks.wrapped_entries(raw.task) == ()
+
+
+def test_random_angles_around_target_are_the_same_configurations():
+    raw = config.reach("A", "mdgps")
+    around = config.reach("A", "mdgps", task__random_angles_around_target=True)
+    a, b = np.asarray(evaluate.robustness_states(raw)), np.asarray(evaluate.robustness_states(around))
+    target = np.asarray(tasks.target_state(raw.task))
+    turns = (b - a) / (2 * np.pi)
+    # Whole turns only, and only on the continuous joints (1, 4, 5, 6).
+    np.testing.assert_allclose(turns, np.round(turns), rtol=0, atol=linear_tol(1.0, 2))
+    moved = np.any(np.round(turns) != 0, axis=0)
+    assert not moved[[1, 2]].any() and not moved[6:].any()
+    assert moved[3]  # joint 4's target 4.45 lies outside the drawn [−π, π]: most states move
+    d = b[:, [0, 3, 4, 5]] - target[[0, 3, 4, 5]]
+    assert np.all((d >= -np.pi) & (d < np.pi))
+    np.testing.assert_array_equal(b[:, [1, 2]], a[:, [1, 2]])
