@@ -11,7 +11,8 @@
 # with their continuous joints' angles within ±π of the target's (task.random_angles_around_target)
 # against the reset distribution's [−π, π]; alpha 0.1 and 10 against 1. MDGPS: the plain MLP,
 # the MLP with GMR's bound on its input, the paper's plant, wrapped angles, angles around the
-# target. The
+# target, the toolbox's weight initialiser N(0, 0.01²) (with and without angles around the
+# target). The
 # 0.1 threshold (the paper's text) against 0.01 (its table) is in every summary. Naming CELLs
 # runs only those (e.g. to split the work over several commands of limited time). Each cell runs
 # through experiments/gmr_sweep.sh (side by side, then experiments.diagnose); the table with
@@ -30,6 +31,7 @@ GMR_CELLS=(
   "no_bound_no_torque_limit=--set gmr__encoder_squash=0.0 --set sim__clip_torques=False"
   "wrap=--set task__wrap_angles=True"
   "around_target=--set task__random_angles_around_target=True"
+  "no_bound_around_target=--set gmr__encoder_squash=0.0 --set task__random_angles_around_target=True"
   "alpha0.1=--set gmr__alpha=0.1"
   "alpha10=--set gmr__alpha=10.0"
 )
@@ -39,6 +41,8 @@ MDGPS_CELLS=(
   "no_torque_limit=--set sim__clip_torques=False"
   "wrap=--set task__wrap_angles=True"
   "around_target=--set task__random_angles_around_target=True"
+  "toolbox_init=--set mlp__init=normal"
+  "toolbox_init_around_target=--set mlp__init=normal --set task__random_angles_around_target=True"
 )
 # The cells of a list that are named on the command line (all when none is named).
 select_cells() {
