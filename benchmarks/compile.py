@@ -90,13 +90,13 @@ def main(argv=None) -> int:
     p.add_argument("--algorithm", default="gmr", choices=tuple(policies.ALGORITHMS))
     p.add_argument("--scenario", default="AB")
     p.add_argument("--backend", default="mjx", choices=("auto", "mjx", "mujoco"))
-    p.add_argument("--precision", default="float64", choices=("float32", "float64"))
+    cli.add_precision_argument(p)
     p.add_argument("--only", default="", help="comma-separated stage names to compile (default: all)")
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="configuration override (a Python literal)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
-    jax.config.update("jax_enable_x64", args.precision == "float64")
+    args.precision = cli.setup_jax(args.precision)
     overrides = cli.parse_overrides(p, args.set)
     cfg = config.reach(args.scenario, args.algorithm, sim__backend=args.backend, **overrides)
     dev = jax.devices()[0]

@@ -96,14 +96,14 @@ def main(argv=None) -> int:
     p.add_argument("--first-seed", type=int, default=0,
                    help="first seed (to split a long soak over several calls)")
     p.add_argument("--runs", default="A/gmr,A/mdgps,AB/gmr,AB/mdgps", help="scenario/algorithm pairs")
-    p.add_argument("--precision", default="float64", choices=("float32", "float64"))
+    cli.add_precision_argument(p)
     p.add_argument("--backend", default="mjx", choices=("auto", "mjx", "mujoco"))
     p.add_argument("--devices", type=int, default=None)
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="configuration override for every run (a Python literal)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
-    jax.config.update("jax_enable_x64", args.precision == "float64")
+    args.precision = cli.setup_jax(args.precision)
     overrides = cli.parse_overrides(p, args.set)
     mesh = sharding.seed_mesh(args.devices)
     dev = jax.devices()[0]

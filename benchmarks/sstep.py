@@ -34,6 +34,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from experiments import cli
 from gmr_jax import config, mdgps, policies, sstep, tasks
 
 
@@ -148,7 +149,7 @@ def parse_args(argv=None):
     p.add_argument("--impl", default="packed", help="comma-separated S-step forms: packed, reference")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
     p.add_argument("--repeats", type=int, default=3, help="timed S-steps (median)")
-    p.add_argument("--precision", default="float64", choices=("float32", "float64"))
+    cli.add_precision_argument(p)
     p.add_argument("--out", help="write the results as JSON to this file")
     p.add_argument("--hlo-dir", help="also write each compiled program's HLO text here")
     return p.parse_args(argv)
@@ -194,7 +195,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    jax.config.update("jax_enable_x64", args.precision == "float64")
+    args.precision = cli.setup_jax(args.precision)
     dtype = jnp.float64 if args.precision == "float64" else jnp.float32
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import cli
 from gmr_jax import config, mdgps, policies, sharding
 from gmr_jax.tasks import reach as reach_task
 
@@ -38,8 +39,7 @@ def parse_args(argv=None):
     p.add_argument("--T", type=int, default=config.TaskConfig.T)
     p.add_argument("--backend", default="auto", choices=("auto", "mjx", "mujoco"))
     p.add_argument("--repeats", type=int, default=1, help="timed runs per seed count (median)")
-    p.add_argument("--precision", default="float64", choices=("float32", "float64"),
-                   help="floating-point precision (default: %(default)s, as experiments.reach)")
+    cli.add_precision_argument(p)
     p.add_argument("--devices", type=int, default=None, help="local devices to split the seeds over "
                    "(default: all)")
     p.add_argument("--out", help="write the results as JSON to this file")
@@ -48,7 +48,7 @@ def parse_args(argv=None):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    jax.config.update("jax_enable_x64", args.precision == "float64")
+    args.precision = cli.setup_jax(args.precision)
     cfg = config.reach(args.scenario, args.algorithm, iterations=args.iterations,
                        num_samples=args.samples, task__T=args.T, sim__backend=args.backend)
     mesh = sharding.seed_mesh(args.devices)

@@ -61,5 +61,5 @@ for algorithm in gmr mdgps; do
   [ ${#run[@]} -gt 0 ] || continue
   ALGORITHM=$algorithm bash "$HERE/gmr_sweep.sh" "$OUT/$algorithm" "${run[@]}"
 done
-python -m experiments.intervals "$OUT"/*/*/results.json > "$OUT/ablations.md"
+python -m experiments.intervals --compact "$OUT"/*/*/results.json > "$OUT/ablations.md"
 cat "$OUT/ablations.md"

@@ -74,9 +74,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest intact checkpoints in --out (same settings; a "
                         "larger --iterations extends finished runs)")
-    p.add_argument("--precision", default="float64", choices=("float32", "float64"),
-                   help="floating-point precision of the whole run (default: %(default)s; float32 "
-                        "can make the dynamics fit fail on GPUs, see benchmarks/RESULTS.md)")
+    add_precision_argument(p)
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--video", action="store_true",
                    help="render MP4s of every policy run's first seed from the training conditions and "
@@ -96,6 +94,11 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="let XLA time kernel variants on the GPU while compiling. Off by default: "
                         "runs that compile while others train make those timings slow and noisy, "
                         "and kernels chosen by timing make results differ from call to call")
+    p.add_argument("--nondeterministic", action="store_true",
+                   help="let XLA use GPU kernels whose floating-point sums depend on thread timing "
+                        "(atomic scatters and reductions). Off by default: with them, two runs of "
+                        "the same key and configuration on the same GPU differ from the first "
+                        "iterations on (benchmarks/RESULTS.md)")
     p.add_argument("--compilation-cache", default=DEFAULT_COMPILATION_CACHE, metavar="DIR",
                    help="persistent XLA compilation cache: a repeated run skips most of its "
                         "compilation (default: $JAX_COMPILATION_CACHE_DIR or %(default)s; "
@@ -190,16 +193,40 @@ def progress_printer(prefix_runs: bool):
     return show
 
 
-def _setup_jax(args) -> None:
+PRECISIONS = ("auto", "float32", "float64")
+
+
+def add_precision_argument(p: argparse.ArgumentParser) -> None:
+    """``--precision`` (auto, float32, float64), shared by the studies and the benchmarks."""
+    p.add_argument("--precision", default="auto", choices=PRECISIONS,
+                   help="floating-point precision of the whole run (default: %(default)s, float32 "
+                        "on a GPU and float64 elsewhere; float32 on GPUs was soaked and checked "
+                        "against float64 over 32 seeds, benchmarks/RESULTS.md)")
+
+
+def setup_jax(precision: str, autotune: bool = False, deterministic: bool = True,
+              compilation_cache: str = "none") -> str:
+    """Set XLA's GPU flags and JAX's precision before the first computation; returns the
+    precision used ("auto" resolved: float32 on a GPU, float64 elsewhere).
+
+    XLA_FLAGS already naming a flag wins over the arguments. autotune=False turns GPU autotuning
+    off (kernels chosen by timing differ from call to call); deterministic=True makes XLA's GPU
+    scatters and reductions deterministic (without it, atomics make repeated runs differ)."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if not args.autotune and "xla_gpu_autotune_level" not in flags:
-        # Read when the backend starts (the first device query), so set before it.
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_gpu_autotune_level=0".strip()
+    # Read when the backend starts (the first device query), so set before it.
+    if not autotune and "xla_gpu_autotune_level" not in flags:
+        flags = f"{flags} --xla_gpu_autotune_level=0"
+    if deterministic and "xla_gpu_deterministic_ops" not in flags:
+        flags = f"{flags} --xla_gpu_deterministic_ops=true"
+    os.environ["XLA_FLAGS"] = flags.strip()
     import jax
 
-    jax.config.update("jax_enable_x64", args.precision == "float64")
-    if args.compilation_cache != "none":
-        jax.config.update("jax_compilation_cache_dir", args.compilation_cache)
+    if precision == "auto":
+        precision = "float32" if jax.default_backend() == "gpu" else "float64"
+    jax.config.update("jax_enable_x64", precision == "float64")
+    if compilation_cache != "none":
+        jax.config.update("jax_compilation_cache_dir", compilation_cache)
+    return precision
 
 
 def _stop_on_signals(scheduler: runner.Scheduler):
@@ -285,7 +312,8 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
     args = parse_args(task_name, argv, description)
     args.argv = argv
     prog = f"python -m experiments.{task_name}"
-    _setup_jax(args)
+    args.precision = setup_jax(args.precision, args.autotune, not args.nondeterministic,
+                               args.compilation_cache)
     try:
         return run_study(args, t_start)
     except runner.Interrupted as err:

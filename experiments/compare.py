@@ -9,18 +9,20 @@ times are not compared. Exit code 0 when every record is bit-identical, 1 otherw
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 import sys
 
 import numpy as np
 
+from experiments import report
+
 
 def _records(path: pathlib.Path) -> dict:
-    results = path / "results.json" if path.is_dir() else path
-    if not results.is_file():
-        raise SystemExit(f"python -m experiments.compare: error: {results} not found")
-    return {(r["scenario"], r["algorithm"], r["seed"]): r for r in json.loads(results.read_text())["runs"]}
+    try:
+        runs = report.read_results(path)["runs"]
+    except (OSError, ValueError) as err:
+        raise SystemExit(f"python -m experiments.compare: error: {path}: no readable results ({err})")
+    return {(r["scenario"], r["algorithm"], r["seed"]): r for r in runs}
 
 
 def _largest_difference(a, b) -> str:

@@ -8,13 +8,17 @@ measures (e.g. "inserted"), and the learning speed (``experiments.report.success
 the first iteration from which the final-state MSE from every training condition stays below
 ``--threshold``) of the LQR base layer and the policy, and the policy's lag. For results written
 before the summaries carried them.
+
+``--compact`` prints one table for all the studies instead, a row per study and run: the
+successes at both thresholds and the fraction of contracting states (``gmr_jax.stability``),
+each over seeds (e.g. the ablation table of ``experiments/ablations.sh``).
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
-import json
+import os
 import pathlib
 
 import numpy as np
@@ -50,18 +54,62 @@ def table(results: dict, threshold: float = 0.01) -> list[str]:
     return lines
 
 
+COMPACT_HEADER = ("| study | run | seeds | successes, MSE < 0.01 | successes, MSE < 0.1 | contracting states |\n"
+                  "|---|---|---|---|---|---|")
+
+
+def compact_rows(label: str, results: dict) -> list[str]:
+    """Markdown rows of ``COMPACT_HEADER``, one per run (scenario, algorithm) of a study."""
+    per_run = collections.defaultdict(lambda: collections.defaultdict(list))
+    for rec in results["runs"]:
+        rob, stab = rec.get("robustness") or {}, rec.get("stability") or {}
+        row = per_run[(rec["scenario"], rec["algorithm"])]
+        for key in ("successes", "successes_loose"):
+            if key in rob:
+                row[key].append(rob[key])
+        if "contracting" in stab:
+            row["contracting"].append(stab["contracting"])
+    lines = []
+    for (scenario, algorithm), m in per_run.items():
+        cells = [stats.over_seeds(m[k]).format(digits) if m[k] else "–"
+                 for k, digits in (("successes", 1), ("successes_loose", 1), ("contracting", 2))]
+        lines.append(f"| {label} | {scenario}/{algorithm} | {len(m['successes'])} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _folder(path: pathlib.Path) -> pathlib.Path:
+    return (path if path.is_dir() else path.parent).resolve()
+
+
+def labels(paths: list[pathlib.Path]) -> list[str]:
+    """The studies' names in the compact table: their folders relative to the folder all share."""
+    folders = [_folder(p) for p in paths]
+    if len(folders) == 1:
+        return [folders[0].name]
+    common = pathlib.Path(os.path.commonpath(folders))
+    return [str(f.relative_to(common)) or f.name for f in folders]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.intervals", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("results", nargs="+", type=pathlib.Path, help="results.json files of finished studies")
+    p.add_argument("results", nargs="+", type=pathlib.Path,
+                   help="results.json (or results.json.gz) files or folders of finished studies")
     p.add_argument("--threshold", type=float, default=0.01,
                    help="final-state MSE of a success, for the learning speed (default: the paper's 0.01)")
+    p.add_argument("--compact", action="store_true",
+                   help="one table, a row per study and run (successes at both thresholds, contracting states)")
     args = p.parse_args(argv)
-    for path in args.results:
+    if args.compact:
+        print(COMPACT_HEADER)
+    for path, label in zip(args.results, labels(args.results)):
         try:
-            results = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
+            results = report.read_results(path)
+        except (OSError, ValueError) as err:
             p.error(f"{path}: cannot read a results.json ({err})")
+        if args.compact:
+            print("\n".join(compact_rows(label, results)))
+            continue
         print(f"## {path}\n")
         print("\n".join(table(results, args.threshold)) + "\n")
     return 0

@@ -6,6 +6,7 @@ scenarios' conditions and the paper's reference numbers.
 
 from __future__ import annotations
 
+import gzip
 import json
 import pathlib
 
@@ -17,6 +18,16 @@ from gmr_jax.runner import jsonable
 # Per-iteration learning-curve entries, in the order they are reported.
 CURVES = (("final_state_mse_lqr", "LQR base layer"), ("final_state_mse_policy", "policy"))
 
+
+
+def read_results(path) -> dict:
+    """A study's results: ``path`` is a ``results.json``, a gzipped ``results.json.gz`` (as the
+    committed studies in docs/results keep them) or a study folder holding either."""
+    path = pathlib.Path(path)
+    if path.is_dir():
+        path = path / "results.json" if (path / "results.json").is_file() else path / "results.json.gz"
+    data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+    return json.loads(data)
 
 def _label(algorithm: str, curve: str) -> str:
     if curve == "final_state_mse_lqr":

@@ -123,7 +123,8 @@ def grid_png(path, rows: list[tuple[str, np.ndarray, np.ndarray]], title: str = 
     import matplotlib.pyplot as plt
 
     columns = max(fr.shape[0] for _, fr, _ in rows)
-    fig, axes = plt.subplots(len(rows), columns, figsize=(2.0 * columns, 1.6 * len(rows) + 0.4), squeeze=False)
+    height = 1.6 * len(rows) + 0.4
+    fig, axes = plt.subplots(len(rows), columns, figsize=(2.0 * columns, height), squeeze=False)
     for (label, fr, steps), ax_row in zip(rows, axes):
         for j, ax in enumerate(ax_row):
             ax.set_xticks([])
@@ -137,7 +138,7 @@ def grid_png(path, rows: list[tuple[str, np.ndarray, np.ndarray]], title: str = 
             ax.set_title(f"t = {steps[j] / FPS:.2f} s", fontsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.4 / height))  # the top 0.4 in for the title
     path = pathlib.Path(path)
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -143,3 +143,39 @@ def test_final_states_scene_without_contacts(tmp_path):
     assert (m1.nq, m1.nu, m1.nbody, m1.npair) == (m0.nq, m0.nu, m0.nbody, m0.npair)
     np.testing.assert_array_equal(m1.body_mass, m0.body_mass)
     np.testing.assert_array_equal(m1.actuator_ctrlrange, m0.actuator_ctrlrange)
+
+
+def test_read_results_takes_json_gzip_and_folders(tmp_path):
+    import gzip
+    import json
+
+    data = {"runs": [{"scenario": "A", "algorithm": "gmr", "seed": 0, "x": [1.5, 2.0]}]}
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "results.json").write_text(json.dumps(data))
+    (tmp_path / "packed").mkdir()
+    (tmp_path / "packed" / "results.json.gz").write_bytes(gzip.compress(json.dumps(data).encode()))
+    for path in (tmp_path / "plain", tmp_path / "plain" / "results.json", tmp_path / "packed",
+                 tmp_path / "packed" / "results.json.gz"):
+        assert report.read_results(path) == data
+    with pytest.raises(OSError):
+        report.read_results(tmp_path / "missing")
+
+
+def test_compact_table_has_one_row_per_run_with_the_seed_statistics(tmp_path):
+    from experiments import intervals
+    from gmr_jax import stats
+
+    rng = np.random.default_rng(3)
+    runs = [{"scenario": sc, "algorithm": "gmr", "seed": s,
+             "robustness": {"successes": int(rng.integers(0, 51)), "successes_loose": 50},
+             "stability": {"contracting": float(rng.uniform())}}
+            for sc in ("A", "AB") for s in range(5)]
+    rows = intervals.compact_rows("cell", {"runs": runs})
+    assert len(rows) == 2
+    a = [r for r in runs if r["scenario"] == "A"]
+    want = stats.over_seeds([r["robustness"]["successes"] for r in a]).format(1)
+    assert rows[0].startswith("| cell | A/gmr | 5 | " + want + " | ")
+    assert stats.over_seeds([r["stability"]["contracting"] for r in a]).format(2) in rows[0]
+    (tmp_path / "x" / "one").mkdir(parents=True)
+    (tmp_path / "x" / "two").mkdir()
+    assert intervals.labels([tmp_path / "x" / "one", tmp_path / "x" / "two" / "results.json"]) == ["one", "two"]
