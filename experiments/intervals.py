@@ -9,6 +9,10 @@ the first iteration from which the final-state MSE from every training condition
 ``--threshold``) of the LQR base layer and the policy, and the policy's lag. For results written
 before the summaries carried them.
 
+``--by-distance`` prints, per study and run, the fraction of the random states' rollouts (over
+all seeds) that succeed, binned by the state's distance from the nearest training state (rad,
+``Robustness.distance``).
+
 ``--compact`` prints one table for all the studies instead, a row per study and run: the
 successes at both thresholds and the fraction of contracting states (``gmr_jax.stability``),
 each over seeds (e.g. the ablation table of ``experiments/ablations.sh``).
@@ -77,6 +81,38 @@ def compact_rows(label: str, results: dict) -> list[str]:
     return lines
 
 
+DISTANCE_BINS = (0.0, 3.0, 4.0, 5.0, 6.0, 8.0, np.inf)
+
+
+def distance_rows(label: str, results: dict, bins=DISTANCE_BINS) -> list[str]:
+    """Markdown rows, one per run: per distance bin [lo, hi), the number of random states in it
+    and the percentage of their rollouts over all seeds with MSE < 0.01 / < 0.1."""
+    per_run = collections.defaultdict(lambda: ([], []))
+    for rec in results["runs"]:
+        rob = rec.get("robustness") or {}
+        if "mse" in rob and "distance" in rob:
+            mse, dist = per_run[(rec["scenario"], rec["algorithm"])]
+            mse.append(rob["mse"])
+            dist.append(rob["distance"])
+    lines = []
+    for (scenario, algorithm), (mse, dist) in per_run.items():
+        mse, dist = np.asarray(mse, float), np.asarray(dist, float)  # [seeds, states]
+        cells = []
+        for lo, hi in zip(bins[:-1], bins[1:]):
+            sel = (dist[0] >= lo) & (dist[0] < hi)  # the states are the same for every seed
+            cells.append(f"{int(sel.sum())}: {100 * np.mean(mse[:, sel] < 0.01):.0f} % / "
+                         f"{100 * np.mean(mse[:, sel] < 0.1):.0f} %" if sel.any() else "–")
+        lines.append(f"| {label} | {scenario}/{algorithm} | {len(mse)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def distance_header(bins=DISTANCE_BINS) -> str:
+    names = [f"[{lo:g}, {hi:g})" for lo, hi in zip(bins[:-1], bins[1:])]
+    return ("Per bin of distance from the nearest training state (rad): the random states in it: % of "
+            "their rollouts over all seeds with MSE < 0.01 / < 0.1.\n\n"
+            "| study | run | seeds | " + " | ".join(names) + " |\n|" + "---|" * (3 + len(names)))
+
+
 def _folder(path: pathlib.Path) -> pathlib.Path:
     return (path if path.is_dir() else path.parent).resolve()
 
@@ -99,16 +135,21 @@ def main(argv=None) -> int:
                    help="final-state MSE of a success, for the learning speed (default: the paper's 0.01)")
     p.add_argument("--compact", action="store_true",
                    help="one table, a row per study and run (successes at both thresholds, contracting states)")
+    p.add_argument("--by-distance", action="store_true",
+                   help="successes binned by the random state's distance from the training states")
     args = p.parse_args(argv)
     if args.compact:
         print(COMPACT_HEADER)
+    if args.by_distance:
+        print(distance_header())
     for path, label in zip(args.results, labels(args.results)):
         try:
             results = report.read_results(path)
         except (OSError, ValueError) as err:
             p.error(f"{path}: cannot read a results.json ({err})")
-        if args.compact:
-            print("\n".join(compact_rows(label, results)))
+        if args.compact or args.by_distance:
+            rows = compact_rows if args.compact else distance_rows
+            print("\n".join(rows(label, results)))
             continue
         print(f"## {path}\n")
         print("\n".join(table(results, args.threshold)) + "\n")

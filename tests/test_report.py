@@ -179,3 +179,16 @@ def test_compact_table_has_one_row_per_run_with_the_seed_statistics(tmp_path):
     (tmp_path / "x" / "one").mkdir(parents=True)
     (tmp_path / "x" / "two").mkdir()
     assert intervals.labels([tmp_path / "x" / "one", tmp_path / "x" / "two" / "results.json"]) == ["one", "two"]
+
+
+def test_distance_table_bins_the_states_and_counts_both_thresholds():
+    from experiments import intervals
+
+    dist = [0.5, 3.5, 3.7, 9.0]
+    runs = [{"scenario": "A", "algorithm": "mdgps", "seed": s,
+             "robustness": {"distance": dist, "mse": [0.001, 0.05, 0.5, 0.001 if s == 0 else 0.2]}}
+            for s in range(2)]
+    (row,) = intervals.distance_rows("cell", {"runs": runs}, bins=(0.0, 3.0, 4.0, 8.0, np.inf))
+    # [0, 3): one state, both seeds < 0.01; [3, 4): two states, none < 0.01, half < 0.1;
+    # [4, 8): empty; [8, inf): one state, one seed of two < 0.01 and < 0.1.
+    assert row == "| cell | A/mdgps | 2 | 1: 100 % / 100 % | 2: 0 % / 50 % | – | 1: 50 % / 50 % |"
