@@ -221,11 +221,11 @@ def setup_jax(precision: str, autotune: bool = False, deterministic: bool = True
     os.environ["XLA_FLAGS"] = flags.strip()
     import jax
 
-    if precision == "auto":
-        precision = "float32" if jax.default_backend() == "gpu" else "float64"
-    jax.config.update("jax_enable_x64", precision == "float64")
     if compilation_cache != "none":
         jax.config.update("jax_compilation_cache_dir", compilation_cache)
+    if precision == "auto":  # starts the backend, which reads XLA_FLAGS (set above)
+        precision = "float32" if jax.default_backend() == "gpu" else "float64"
+    jax.config.update("jax_enable_x64", precision == "float64")
     return precision
 
 
