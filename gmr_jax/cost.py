@@ -203,6 +203,7 @@ def wrap_angles(d: Array, entries: Sequence[int]) -> Array:
     continuous (everywhere except at ±π), so a quadratic expansion in d stays exact there."""
     if not entries:
         return d
+    d = jnp.asarray(d)
     idx = np.asarray(entries)
     two_pi = jnp.asarray(2 * np.pi, d.dtype)
     wrapped = d[..., idx] - two_pi * jnp.floor((d[..., idx] + two_pi / 2) / two_pi)
