@@ -192,3 +192,26 @@ def test_distance_table_bins_the_states_and_counts_both_thresholds():
     # [0, 3): one state, both seeds < 0.01; [3, 4): two states, none < 0.01, half < 0.1;
     # [4, 8): empty; [8, inf): one state, one seed of two < 0.01 and < 0.1.
     assert row == "| cell | A/mdgps | 2 | 1: 100 % / 100 % | 2: 0 % / 50 % | – | 1: 50 % / 50 % |"
+
+
+def test_every_ablation_cell_is_a_valid_configuration_of_the_cli():
+    """experiments/ablations.sh's cells ("NAME=ARGS") parse and validate as the reach CLI's runs,
+    and each changes the configuration (a misspelt field would end the CLI with a usage error)."""
+    import pathlib
+    import re
+    import shlex
+
+    from experiments import cli
+
+    script = (pathlib.Path(__file__).parents[1] / "experiments" / "ablations.sh").read_text()
+    blocks = {alg: re.search(rf"{alg.upper()}_CELLS=\((.*?)\n\)", script, re.S).group(1)
+              for alg in ("gmr", "mdgps")}
+    seen = 0
+    for alg, block in blocks.items():
+        base = cli.parse_args("reach", ["--algorithm", alg, "--scenario", "A,AB"]).configs
+        for name, args in re.findall(r'"([\w.]+)=(.*?)"', block):
+            cfgs = cli.parse_args("reach", ["--algorithm", alg, "--scenario", "A,AB", *shlex.split(args)]).configs
+            assert set(cfgs) == {("A", alg), ("AB", alg)}
+            assert (cfgs == base) == (args == ""), (alg, name)
+            seen += 1
+    assert seen >= 10
