@@ -19,7 +19,6 @@ from gmr_jax.runner import jsonable
 CURVES = (("final_state_mse_lqr", "LQR base layer"), ("final_state_mse_policy", "policy"))
 
 
-
 def read_results(path) -> dict:
     """A study's results: ``path`` is a ``results.json``, a gzipped ``results.json.gz`` (as the
     committed studies in docs/results keep them) or a study folder holding either."""
@@ -28,6 +27,7 @@ def read_results(path) -> dict:
         path = path / "results.json" if (path / "results.json").is_file() else path / "results.json.gz"
     data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
     return json.loads(data)
+
 
 def _label(algorithm: str, curve: str) -> str:
     if curve == "final_state_mse_lqr":

@@ -51,17 +51,17 @@ class Robustness(NamedTuple):
     extra: dict
 
 
-def final_state_mse(x_final: jax.Array, target: jax.Array, wrapped: tuple[int, ...] = ()) -> jax.Array:
-    """Final-state mean squared error over the state entries (rad, rad/s), gmr-method.md §3.1.
+def final_state_mse(x_final: jax.Array, target: jax.Array) -> jax.Array:
+    """Final-state mean squared error over the state entries (rad, rad/s), gmr-method.md §3.1,
+    in raw angles (:func:`task_mse` follows the task's angle convention).
 
     Args:
       x_final: [..., dX] final states.
       target: [dX] target state.
-      wrapped: entries whose errors are wrapped to [−π, π) first (``tasks.wrapped_entries``).
     Returns:
       [...] MSE per state.
     """
-    return jnp.mean(cost_lib.wrap_angles(x_final - target, wrapped) ** 2, axis=-1)
+    return jnp.mean((x_final - target) ** 2, axis=-1)
 
 
 def task_error(cfg: Config, x: jax.Array) -> jax.Array:

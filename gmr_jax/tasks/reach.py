@@ -19,8 +19,8 @@ import numpy as np
 
 from gmr_jax import cost as cost_lib
 from gmr_jax import sim as sim_lib
-from gmr_jax.config import Config, TaskConfig, check_choice, check_nonnegative, check_number_tuple
 from gmr_jax import tasks
+from gmr_jax.config import Config, TaskConfig, check_choice, check_nonnegative, check_number_tuple
 from gmr_jax.tasks import Task, at_rest, disturb, jaco
 
 # Kinova actuator angles (rad) of the paper-era Jaco experiment (gmr-method.md §2).
