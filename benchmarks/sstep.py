@@ -35,7 +35,10 @@ import jax
 import jax.numpy as jnp
 
 from experiments import cli
+from jax.flatten_util import ravel_pytree
+
 from gmr_jax import config, mdgps, policies, sstep, tasks
+from gmr_jax.policies import gmr_kernel
 
 
 def synthetic_data(cfg: config.Config, key, dtype) -> policies.SStepData:
@@ -146,22 +149,34 @@ def parse_args(argv=None):
     p.add_argument("--algorithm", default="gmr,mdgps", help="comma-separated: gmr, mdgps")
     p.add_argument("--scenario", default="A", help="comma-separated scenarios (data size)")
     p.add_argument("--unroll", default="1", help="comma-separated unroll factors")
-    p.add_argument("--impl", default="packed", help="comma-separated S-step forms: packed, reference")
+    p.add_argument("--impl", default="packed", help="comma-separated S-step forms: kernel, packed, reference")
+    p.add_argument("--num-warps", default=str(gmr_kernel.NUM_WARPS),
+                   help="comma-separated warps per thread block of the kernel form")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
     p.add_argument("--repeats", type=int, default=3, help="timed S-steps (median)")
+    p.add_argument("--seeds", type=int, default=1,
+                   help="S-steps side by side (jax.vmap over params and data, as over seeds)")
     cli.add_precision_argument(p)
     p.add_argument("--out", help="write the results as JSON to this file")
     p.add_argument("--hlo-dir", help="also write each compiled program's HLO text here")
     return p.parse_args(argv)
 
 
-def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> dict:
-    """Compile and time one S-step configuration; returns its result row (and prints it)."""
+def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> tuple[dict, jax.Array]:
+    """Compile and time one S-step configuration; returns its result row (and prints it) and
+    the trained weights of the first timed S-step as one vector."""
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll)
-    params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
-    data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
     pol = policies.for_config(cfg)
-    fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))
+    if args.seeds == 1:
+        params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
+        data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
+        fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))
+    else:
+        keys = jax.random.split(jax.random.PRNGKey(0), args.seeds)
+        params = jax.vmap(lambda k: mdgps.init(cfg, k).policy.params)(keys)
+        data = jax.vmap(lambda k: synthetic_data(cfg, k, dtype))(keys)
+        fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))(
+            p, d, jax.random.split(k, args.seeds)))
     t0 = time.perf_counter()
     compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
     compile_s = time.perf_counter() - t0
@@ -176,7 +191,10 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
         out, info = compiled(params, data, jax.random.PRNGKey(3 + r))
         jax.block_until_ready(out)
         times.append(time.perf_counter() - t0)
-    nb = data.x.shape[0] // cfg.sstep.batch_size
+        if r == 0:
+            weights = ravel_pytree(out.net)[0]
+            finite = bool(jnp.all(info["finite"]))
+    nb = data.x.shape[-2] // cfg.sstep.batch_size
     steps = args.epochs * nb
     # steps per iteration of the minibatch loop: "packed" loops over all steps, "reference"
     # over one epoch's
@@ -184,13 +202,15 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
     body = loop_body_ops(hlo)
     run_s = statistics.median(times)
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
-           "rows": int(data.x.shape[0]), "adam_steps": steps, "compile_s": compile_s,
-           "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": bool(info["finite"]),
+           "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
+           "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
+           "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration}
-    print(f"{algorithm:5s} {scenario:2s} unroll {unroll:3d} {impl:9s}: {run_s:7.3f} s for {steps} steps "
+    name = f"{impl}/{row['num_warps']}" if impl == "kernel" else impl
+    print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:9s}: {run_s:7.3f} s for {steps} steps "
           f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
           f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
-    return row
+    return row, weights
 
 
 def main(argv=None) -> int:
@@ -206,8 +226,19 @@ def main(argv=None) -> int:
     for algorithm in args.algorithm.split(","):
         for scenario in args.scenario.split(","):
             for unroll in [int(u) for u in args.unroll.split(",")]:
+                first = None
                 for impl in args.impl.split(","):
-                    rows.append(measure(algorithm, scenario, unroll, impl, args, dtype))
+                    for warps in ([int(w) for w in args.num_warps.split(",")] if impl == "kernel" else [None]):
+                        if warps:
+                            gmr_kernel.NUM_WARPS = warps
+                        row, weights = measure(algorithm, scenario, unroll, impl, args, dtype)
+                        # every form trains the same weights to round-off: the largest difference
+                        # from the first form listed, relative to the largest weight
+                        first = weights if first is None else first
+                        row["max_rel_diff_vs_first"] = float(jnp.max(jnp.abs(weights - first)) / jnp.max(jnp.abs(first)))
+                        print(f"    max |Δθ| / max |θ| against {args.impl.split(',')[0]}: "
+                              f"{row['max_rel_diff_vs_first']:.2e}", flush=True)
+                        rows.append(row)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"env": env, "rows": rows}, f, indent=1)

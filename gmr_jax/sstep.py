@@ -33,6 +33,7 @@ from jax.flatten_util import ravel_pytree
 from jax import lax
 
 from gmr_jax import linalg
+from gmr_jax.adam import adam_corrections, adam_update  # noqa: F401 (part of this module's API)
 from gmr_jax.config import SStepConfig
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
                                    l2_penalty, target_logdet)
@@ -95,7 +96,7 @@ def normalize_weights(wt, median_floor: float = 1e-2, clip: float = 2.0):
     return jnp.minimum(w, clip * mn) / mn
 
 
-IMPLS = ("packed", "reference")
+IMPLS = ("packed", "reference", "kernel")
 
 
 def default_impl() -> str:
@@ -119,8 +120,10 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
       data: SStepData with B rows (B ≥ cfg.batch_size); wt [B] raw weights (e.g. constant).
       key: PRNG key (typed or raw uint32) for the shuffles and the policy's loss.
       cfg: SStepConfig (static).
-      impl: "packed": the policy's ``training`` form in one loop over all minibatch steps (falls
-        back to "reference" for a policy without one); "reference": autodiff of ``policy.loss``
+      impl: "kernel": the policy's GPU kernel (``Policy.kernel``: every step in one launch; Pallas's
+        interpreter off a GPU; falls back to "packed" for a policy without one); "packed": the
+        policy's ``training`` form in one loop over all minibatch steps (falls back to
+        "reference" for a policy without one); "reference": autodiff of ``policy.loss``
         through ``params.net`` in a loop per epoch; None: ``default_impl()``. Both take the same
         minibatches in the same order with the same random numbers; their results agree to
         round-off (tests/test_sstep.py).
@@ -149,7 +152,9 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
     logdet = target_logdet(data.tgt_prc, wn) if data.tgt_logdet is None else data.tgt_logdet
     train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn, tgt_logdet=logdet)
 
-    if impl == "packed" and policy.training is not None:
+    if impl == "kernel" and policy.kernel is not None:
+        net, (loss, data_loss, aux) = _fit_kernel(policy, params, train, key, cfg)
+    elif impl in ("packed", "kernel") and policy.training is not None:
         net, (loss, data_loss, aux) = _fit_packed(policy.training, params, train, key, cfg)
     else:
         net, (loss, data_loss, aux) = _fit_reference(policy, params, train, key, cfg)
@@ -183,24 +188,32 @@ def _stats(total, value, aux):
     return jnp.stack(stats), treedef
 
 
-def adam_corrections(cfg: SStepConfig, steps: int, dtype):
-    """Adam's bias corrections (1 − b1^t, 1 − b2^t) [steps] for t = 1 … steps, computed as
-    ``optax.adam`` computes them at step t."""
-    count = jnp.arange(1, steps + 1, dtype=jnp.int32)
-    return (1 - cfg.b1 ** count).astype(dtype), (1 - cfg.b2 ** count).astype(dtype)
+def _schedule(train: SStepData, key, cfg: SStepConfig, noise_fn, dtype):
+    """What the minibatch steps need that does not depend on the weights: every step's rows
+    idx [steps, batch_size] (every epoch's shuffle), its random numbers (``noise_fn(key, n,
+    dtype)`` per step, stacked; None without a noise_fn) and Adam's bias corrections c1, c2
+    [steps]. The same split of ``key`` as the reference form's, so all forms take the same
+    minibatches and draw the same noise."""
+    B = train.x.shape[0]
+    bs = cfg.batch_size
+    nb = B // bs
+    steps = cfg.epochs * nb
+    k_perm, k_loss = _epoch_keys(key, cfg)
+    idx = jax.vmap(lambda k: _minibatches(k, B, nb, bs))(k_perm).reshape(steps, bs)
+    if noise_fn is None:
+        noise = None
+    else:
+        step_keys = jax.vmap(lambda k: jax.random.split(k, nb))(k_loss)
+        step_keys = step_keys.reshape((steps,) + step_keys.shape[2:])
+        noise = jax.vmap(lambda k: noise_fn(k, bs, dtype))(step_keys)
+    c1, c2 = adam_corrections(cfg, steps, dtype)
+    return idx, noise, c1, c2
 
 
-def adam_update(cfg: SStepConfig, theta, mu, nu, grad, c1, c2):
-    """One step of ``optax.adam(cfg.lr, cfg.b1, cfg.b2, cfg.eps)``, operation for operation, with
-    its bias corrections c1, c2 (``adam_corrections``) given: θ, μ, ν, grad [n] -> (θ, μ, ν).
-
-    Taking the corrections as inputs keeps the step counter and the powers b^t, scalar kernels
-    on a GPU, out of the S-step's loop.
-    """
-    mu = (1 - cfg.b1) * grad + cfg.b1 * mu
-    nu = (1 - cfg.b2) * grad ** 2 + cfg.b2 * nu
-    update = -cfg.lr * ((mu / c1) / (jnp.sqrt(nu / c2 + 0.0) + cfg.eps))
-    return (theta + update).astype(theta.dtype), mu, nu
+def _epoch_means(cfg: SStepConfig, per_step):
+    """[steps] per-step values (a pytree) -> [epochs] means over each epoch's steps."""
+    return jax.tree_util.tree_map(
+        lambda a: jnp.mean(a.reshape((cfg.epochs, -1) + a.shape[1:]), axis=1), per_step)
 
 
 def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
@@ -208,24 +221,13 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
 
     Everything that does not depend on the weights is done before the loop: the per-datum
     constants (one matrix, so a minibatch is one gather), every epoch's shuffle, every
-    minibatch's random numbers and Adam's bias corrections. The loop body is then the gather,
-    ``form.value_and_grad``, the L2 term and Adam.
+    minibatch's random numbers and Adam's bias corrections (``_schedule``). The loop body is then
+    the gather, ``form.value_and_grad``, the L2 term and Adam.
     Returns (net, (loss [epochs], data_loss [epochs], aux)).
     """
-    B = train.x.shape[0]
-    bs = cfg.batch_size
-    nb = B // bs
-    steps = cfg.epochs * nb
-    k_perm, k_loss = _epoch_keys(key, cfg)
-    idx = jax.vmap(lambda k: _minibatches(k, B, nb, bs))(k_perm).reshape(steps, bs)
     theta0 = form.pack(params)
+    idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
     rows = form.rows(params, train)
-    if form.noise is None:
-        noise = None
-    else:
-        step_keys = jax.vmap(lambda k: jax.random.split(k, nb))(k_loss)
-        step_keys = step_keys.reshape((steps,) + step_keys.shape[2:])
-        noise = jax.vmap(lambda k: form.noise(k, bs, theta0.dtype))(step_keys)
     stats_def = []
 
     def step(carry, inputs):
@@ -240,11 +242,19 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         return (theta_new, mu, nu), stats
 
     zeros = jnp.zeros_like(theta0)
-    c1, c2 = adam_corrections(cfg, steps, theta0.dtype)
     (theta, *_), stats = lax.scan(step, (theta0, zeros, zeros), (idx, noise, c1, c2),
-                                  unroll=min(cfg.unroll, steps))
-    means = jnp.mean(stats.reshape(cfg.epochs, nb, -1), axis=1)
+                                  unroll=min(cfg.unroll, len(idx)))
+    means = _epoch_means(cfg, stats)
     return form.unpack(params, theta), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
+
+
+def _fit_kernel(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
+    """The Adam loop as the policy's GPU kernel (``Policy.kernel``), on ``_schedule``'s steps.
+    Returns (net, (loss [epochs], data_loss [epochs], aux))."""
+    dtype = params.norm.scale.dtype
+    idx, noise, c1, c2 = _schedule(train, key, cfg, policy.training.noise, dtype)
+    net, per_step = policy.kernel(params, train, idx, noise, c1, c2, cfg)
+    return net, _epoch_means(cfg, per_step)
 
 
 def _fit_reference(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):

@@ -149,6 +149,11 @@ class Policy(NamedTuple):
       finalize: (params, data: SStepData) -> params, after the S-step's optimisation.
       training: optional :class:`TrainingForm` of ``loss`` for the S-step (None: autodiff of
         ``loss``).
+      kernel: optional, the S-step's whole Adam loop as one GPU kernel: (params, train:
+        SStepData (``tgt_prc`` = w·P, ``wt`` = w), idx [steps, b], noise [steps, b, ...], c1, c2
+        [steps] (Adam's bias corrections), cfg: SStepConfig) -> (net, (total, value, aux)) with
+        [steps] per-step values; the same steps as ``training``'s loop (needs ``training`` for
+        its noise).
     """
 
     init: Callable[..., PolicyParams]
@@ -157,6 +162,7 @@ class Policy(NamedTuple):
     loss: Callable[[PolicyParams, SStepData, Array], tuple[Array, dict]]
     finalize: Callable[[PolicyParams, SStepData], PolicyParams]
     training: TrainingForm | None = None
+    kernel: Callable | None = None
 
 
 def default_float():
