@@ -26,6 +26,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from benchmarks import trace
 from experiments import cli
 from gmr_jax import config, mdgps, policies, tasks
 
@@ -40,14 +41,24 @@ def _hlo_size(compiled) -> dict:
     return {"hlo_instructions": instructions, "while_loops": len(re.findall(r"\swhile\(", text))}
 
 
-def profile(fn, *args) -> dict:
-    """Lower and compile ``jax.jit(fn)`` for abstract ``args``: seconds and HLO size."""
+def profile(fn, *args, trace_dir: str | None = None) -> dict:
+    """Lower and compile ``jax.jit(fn)`` for abstract ``args``: seconds and HLO size; with
+    ``trace_dir``, the compilation runs under JAX's profiler and ``phases`` lists XLA's compiler
+    phases and passes by total time (``benchmarks.trace.host_event_totals``)."""
     t0 = time.perf_counter()
-    lowered = jax.jit(fn).lower(*args)
+    with jax.default_matmul_precision("highest"):  # as mdgps.iteration traces its stages
+        lowered = jax.jit(fn).lower(*args)
     t1 = time.perf_counter()
-    compiled = lowered.compile()
+    if trace_dir is None:
+        compiled = lowered.compile()
+    else:
+        with trace.recorded(trace_dir) as rec:
+            compiled = lowered.compile()
     t2 = time.perf_counter()
-    return {"lower_s": t1 - t0, "compile_s": t2 - t1, **_hlo_size(compiled)}
+    row = {"lower_s": t1 - t0, "compile_s": t2 - t1, **_hlo_size(compiled)}
+    if trace_dir is not None:
+        row["phases"] = trace.host_event_totals(rec[0])
+    return row
 
 
 def stage_programs(cfg: config.Config):
@@ -94,6 +105,9 @@ def main(argv=None) -> int:
     p.add_argument("--only", default="", help="comma-separated stage names to compile (default: all)")
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="configuration override (a Python literal)")
+    p.add_argument("--profile", metavar="DIR", help="compile under JAX's profiler (traces under DIR) and "
+                   "list XLA's compiler phases and passes by time (inclusive, summed over threads; with "
+                   "the profiler on, compilation is somewhat slower)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
     args.precision = cli.setup_jax(args.precision)
@@ -109,9 +123,12 @@ def main(argv=None) -> int:
     for name, fn, fargs in stage_programs(cfg):
         if only and not any(name.startswith(o) for o in only):
             continue
-        rows[name] = r = profile(fn, *fargs)
+        tdir = os.path.join(args.profile, re.sub(r"\W+", "_", name)) if args.profile else None
+        rows[name] = r = profile(fn, *fargs, trace_dir=tdir)
         print(f"  {name:42s} lower {r['lower_s']:6.1f} s  compile {r['compile_s']:6.1f} s  "
               f"{r['hlo_instructions']:6d} HLO instructions, {r['while_loops']} while loops", flush=True)
+        for ph in r.get("phases", [])[:25]:
+            print(f"      {ph['s']:8.2f} s  ×{ph['count']:5d}  {ph['name'][:90]}", flush=True)
         if args.out:
             with open(args.out, "w") as f:
                 json.dump({"environment": env, "args": vars(args), "programs": rows}, f, indent=2)

@@ -7,7 +7,8 @@ states, GMR adds the 80 forward-pass means; AB doubles both) for several loop un
 
     python -m benchmarks.sstep --algorithm gmr,mdgps --scenario A,AB --unroll 1,4,16 --out s.json
 
-The data are synthetic (random states, gains, symmetric positive-definite precisions and state
+The S-step is traced with full float32 matrix products, as training traces it (``mdgps.iteration``
+runs under ``jax.default_matmul_precision("highest")``; a GPU's float32 default is TF32). The data are synthetic (random states, gains, symmetric positive-definite precisions and state
 covariances) with the shapes of the real ones: the time of a step does not depend on the values.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
@@ -34,6 +35,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from benchmarks import trace
 from experiments import cli
 from jax.flatten_util import ravel_pytree
 
@@ -159,7 +161,20 @@ def parse_args(argv=None):
     cli.add_precision_argument(p)
     p.add_argument("--out", help="write the results as JSON to this file")
     p.add_argument("--hlo-dir", help="also write each compiled program's HLO text here")
+    p.add_argument("--profile", metavar="DIR", help="also run each S-step once under JAX's profiler "
+                   "(trace written under DIR) and report its kernels per Adam step, their busy time and "
+                   "the device's idle share (GPU only; benchmarks.trace)")
     return p.parse_args(argv)
+
+
+def _as_in_training(fn):
+    """``fn`` traced with full float32 matrix products, as ``mdgps.iteration`` traces its stages
+    (the GPU's default for float32 is TF32 inputs; without this the benchmark would time other
+    kernels than training runs)."""
+    def traced(*args, **kwargs):
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+    return traced
 
 
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> tuple[dict, jax.Array]:
@@ -170,12 +185,12 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
     if args.seeds == 1:
         params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
         data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
-        fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))
+        fn = jax.jit(lambda p, d, k: _as_in_training(sstep.sstep)(pol, p, d, k, cfg.sstep, impl=impl))
     else:
         keys = jax.random.split(jax.random.PRNGKey(0), args.seeds)
         params = jax.vmap(lambda k: mdgps.init(cfg, k).policy.params)(keys)
         data = jax.vmap(lambda k: synthetic_data(cfg, k, dtype))(keys)
-        fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))(
+        fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: _as_in_training(sstep.sstep)(pol, p, d, k, cfg.sstep, impl=impl))(
             p, d, jax.random.split(k, args.seeds)))
     t0 = time.perf_counter()
     compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
@@ -201,15 +216,30 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
     per_iteration = min(unroll, steps if impl == "packed" else nb)
     body = loop_body_ops(hlo)
     run_s = statistics.median(times)
+    profile = None
+    if args.profile:
+        with trace.recorded(os.path.join(args.profile, f"{algorithm}_{scenario}_u{unroll}_{impl}")) as rec:
+            jax.block_until_ready(compiled(params, data, jax.random.PRNGKey(3)))
+        profile = trace.kernel_summary(trace.device_events(rec[0]), steps)
+        profile["device_lines"] = trace.device_lines(rec[0])
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
-           "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration}
+           "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile}
     name = f"{impl}/{row['num_warps']}" if impl == "kernel" else impl
     print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:9s}: {run_s:7.3f} s for {steps} steps "
           f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
           f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
+    if profile and profile["kernels"]:
+        print(f"    profile: {profile['kernels_per_step']:.1f} kernels/step, device busy "
+              f"{profile['busy_us_per_step']:.1f} of {profile['span_us_per_step']:.1f} µs/step "
+              f"(idle {100 * profile['idle_fraction']:.0f} %), median kernel {profile['kernel_us_median']:.2f} µs, "
+              f"median gap {profile['gap_us_median']:.2f} µs", flush=True)
+        for k in profile["top"][:6]:
+            print(f"      {k['us_per_step']:7.2f} µs/step  ×{k['count']:6d}  {k['name'][:90]}", flush=True)
+    elif profile is not None:
+        print("    profile: no device kernels in the trace (not a GPU)", flush=True)
     return row, weights
 
 

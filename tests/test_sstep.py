@@ -1,6 +1,7 @@
 """The S-step: weight rule, input normalisation, objective, fit of a linear-Gaussian teacher,
 closed-form variance, jit/vmap consistency and dtypes; the packed form against the reference
-form (same minibatches, noise and loss; equal to round-off), Adam against optax, packing."""
+form and GMR's kernel form against the packed form (same minibatches, noise and loss; equal to
+round-off), Adam against optax, packing."""
 
 import functools
 
@@ -379,6 +380,79 @@ def test_packed_sstep_equals_reference_float32():
         assert a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
     np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
+
+
+# ------------------------------------------------ the kernel form against the packed form
+
+@pytest.mark.parametrize("name", ["gmr", "gmr_raw", "gmr_uneven"])
+def test_kernel_sstep_equals_packed(name):
+    """GMR's kernel (``gmr_kernel``, here in Pallas's interpreter) against the packed form: the
+    same minibatches, noise and Adam steps with the sums in another order, so the bound of
+    ``test_packed_sstep_equals_reference`` holds, 8·δ·lr·S with δ = n_path·ε.
+
+    n_path is the unpadded one. The kernel pads every width to a power of two ≥ 16 and the
+    minibatch to 32 rows, but each padding term is an exact zero (zero weights, biases and
+    inputs; LeakyReLU(0) = 0; the padded rows' cotangents are 0·(finite) with ρ = 0; the Adam
+    update of a zero weight with a zero gradient is 0), and adding an exact zero rounds nothing:
+    a padded sum is the same nonzero terms summed in some order, within the same γ_n. The kernel's
+    longest loss chain (ΔK Σ over dX, then P· over dU, then the dU·dX terms of the gain) is no
+    longer than n_path's (1 + dX) + (1 + dX + dU) + dU·dX. Three configurations: the kernel's
+    layout and its head input differ for standardised and raw head coordinates and for a decoder
+    and a translation network of different depths."""
+    pol, cfg = _policy(name)
+    data = _full_data(12)
+    params = pol.init(jax.random.key(2), dX, dU)
+    # test_packed_sstep_equals_reference's configuration: its packed program is compiled already
+    scfg = SStepConfig(epochs=3, batch_size=20, unroll=2)
+    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
+    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="kernel")
+    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float64)]
+    steps = scfg.epochs * (B // scfg.batch_size)
+    assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(ref)
+    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
+        assert a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    # the metrics: the same entries, each within δ of the loss (as against the reference form)
+    assert jax.tree_util.tree_structure(new_m) == jax.tree_util.tree_structure(ref_m)
+    for a, b in zip(jax.tree_util.tree_leaves(new_m), jax.tree_util.tree_leaves(ref_m)):
+        np.testing.assert_allclose(a, b, rtol=2 * delta, atol=2 * delta * float(ref_m["loss"][0]))
+    assert bool(new_m["finite"]) and bool(new_m["weights_ok"])
+    # the weights moved: the comparison is not of two untrained networks
+    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+
+
+def test_kernel_sstep_equals_packed_float32():
+    """As above in float32 (ε = 1.2e-7), for GMR. The kernel's products are
+    ``Precision.HIGHEST``, and training traces the packed form with full float32 products too
+    (``mdgps.iteration``); on the CPU both are IEEE float32 anyway."""
+    pol, cfg = _policy("gmr")
+    data = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), _full_data(13))
+    params = pol.init(jax.random.key(2), dX, dU, jnp.float32)
+    # test_packed_sstep_equals_reference_float32's configuration (its packed program is compiled)
+    scfg = SStepConfig(epochs=2, batch_size=20)
+    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
+    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="kernel")
+    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float32)]
+    steps = scfg.epochs * (B // scfg.batch_size)
+    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
+        assert a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
+    assert new_m["loss"].dtype == jnp.float32
+    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+
+
+def test_kernel_without_a_kernel_runs_packed(policy):
+    """impl="kernel" for a policy without ``Policy.kernel`` (the MLP of "mdgps") is not refused:
+    as documented (``sstep``, ``SStepConfig.impl``) it runs the packed form, bit for bit."""
+    assert policy.kernel is None and policy.training is not None
+    data, _ = _teacher(6)
+    params = policy.init(jax.random.key(0), dX, dU)
+    cfg = SStepConfig(epochs=2)
+    ref = _sstep(policy, params, data, jax.random.key(1), cfg, impl="packed")
+    got = _sstep(policy, params, data, jax.random.key(1), cfg, impl="kernel")
+    for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(got)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_adam_update_equals_optax():
