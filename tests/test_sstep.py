@@ -341,6 +341,37 @@ def test_training_form_gradient_equals_autodiff(name):
     assert padding.any() and np.all(np.asarray(grad)[padding] == 0.0)
 
 
+def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype):
+    """Two forms' S-steps from the same params, data and key (float64: 3 epochs, unroll 2;
+    float32: 2 epochs); asserts the weights' bound 8·δ·lr·S (``test_packed_sstep_equals_reference``)
+    and the dtypes, and returns (initial params, new form's params, reference metrics, new
+    metrics, δ)."""
+    pol, cfg = _policy(name)
+    wide = jnp.dtype(dtype) == jnp.float64
+    data = jax.tree_util.tree_map(lambda a: a.astype(dtype), _full_data(12 if wide else 13))
+    params = pol.init(jax.random.key(2), dX, dU, dtype)
+    scfg = SStepConfig(epochs=3, batch_size=20, unroll=2) if wide else SStepConfig(epochs=2, batch_size=20)
+    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl=ref_impl)
+    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl=new_impl)
+    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(dtype)]
+    steps = scfg.epochs * (B // scfg.batch_size)
+    assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(ref)
+    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
+        assert a.dtype == b.dtype and (a.dtype == dtype or not jnp.issubdtype(a.dtype, jnp.floating))
+        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    assert new_m["loss"].dtype == dtype
+    # the weights moved: the comparison is not of two untrained networks
+    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+    return new_m, ref_m, delta
+
+
+def _metrics_agree(new_m, ref_m, delta):
+    """The metrics (epoch means of the step's losses) within δ of the loss (and the weights' drift)."""
+    assert jax.tree_util.tree_structure(new_m) == jax.tree_util.tree_structure(ref_m)
+    for a, b in zip(jax.tree_util.tree_leaves(new_m), jax.tree_util.tree_leaves(ref_m)):
+        np.testing.assert_allclose(a, b, rtol=2 * delta, atol=2 * delta * float(ref_m["loss"][0]))
+
+
 @pytest.mark.parametrize("name", ["mlp", "gmr"])
 def test_packed_sstep_equals_reference(name):
     """The whole S-step: the same minibatches, noise, loss and Adam steps, so the two forms agree
@@ -348,37 +379,12 @@ def test_packed_sstep_equals_reference(name):
     lr·m̂/(√v̂ + eps) with |m̂|/√v̂ ≤ (1 − b1)/√(1 − b2) < 3.2, by at most 2δ·3.2·lr < 8δ·lr, so
     after S steps the weights differ by at most 8δ·lr·S (to first order: over a few steps the
     weights' difference feeds back into the gradients far below δ)."""
-    pol, cfg = _policy(name)
-    data = _full_data(12)
-    params = pol.init(jax.random.key(2), dX, dU)
-    scfg = SStepConfig(epochs=3, batch_size=20, unroll=2)
-    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="reference")
-    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
-    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float64)]
-    steps = scfg.epochs * (B // scfg.batch_size)
-    assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(ref)
-    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
-        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
-    # the metrics: epoch means of the step's losses, within δ of the loss (and the weights' drift)
-    for a, b in zip(jax.tree_util.tree_leaves(new_m), jax.tree_util.tree_leaves(ref_m)):
-        np.testing.assert_allclose(a, b, rtol=2 * delta, atol=2 * delta * float(ref_m["loss"][0]))
-    # the weights moved: the comparison is not of two untrained networks
-    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+    _metrics_agree(*_forms_agree(name, "reference", "packed", jnp.float64))
 
 
 def test_packed_sstep_equals_reference_float32():
     """As above in float32 (ε = 1.2e-7), for GMR."""
-    pol, cfg = _policy("gmr")
-    data = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), _full_data(13))
-    params = pol.init(jax.random.key(2), dX, dU, jnp.float32)
-    scfg = SStepConfig(epochs=2, batch_size=20)
-    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="reference")
-    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
-    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float32)]
-    steps = scfg.epochs * (B // scfg.batch_size)
-    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
-        assert a.dtype == b.dtype
-        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    new_m, ref_m, delta = _forms_agree("gmr", "reference", "packed", jnp.float32)
     np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
 
 
@@ -398,48 +404,19 @@ def test_kernel_sstep_equals_packed(name):
     longest loss chain (ΔK Σ over dX, then P· over dU, then the dU·dX terms of the gain) is no
     longer than n_path's (1 + dX) + (1 + dX + dU) + dU·dX. Three configurations: the kernel's
     layout and its head input differ for standardised and raw head coordinates and for a decoder
-    and a translation network of different depths."""
-    pol, cfg = _policy(name)
-    data = _full_data(12)
-    params = pol.init(jax.random.key(2), dX, dU)
-    # test_packed_sstep_equals_reference's configuration: its packed program is compiled already
-    scfg = SStepConfig(epochs=3, batch_size=20, unroll=2)
-    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
-    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="kernel")
-    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float64)]
-    steps = scfg.epochs * (B // scfg.batch_size)
-    assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(ref)
-    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
-        assert a.dtype == b.dtype
-        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
-    # the metrics: the same entries, each within δ of the loss (as against the reference form)
-    assert jax.tree_util.tree_structure(new_m) == jax.tree_util.tree_structure(ref_m)
-    for a, b in zip(jax.tree_util.tree_leaves(new_m), jax.tree_util.tree_leaves(ref_m)):
-        np.testing.assert_allclose(a, b, rtol=2 * delta, atol=2 * delta * float(ref_m["loss"][0]))
+    and a translation network of different depths. (The packed programs are those of
+    ``test_packed_sstep_equals_reference``, compiled already.)"""
+    new_m, ref_m, delta = _forms_agree(name, "packed", "kernel", jnp.float64)
+    _metrics_agree(new_m, ref_m, delta)
     assert bool(new_m["finite"]) and bool(new_m["weights_ok"])
-    # the weights moved: the comparison is not of two untrained networks
-    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
 
 
 def test_kernel_sstep_equals_packed_float32():
     """As above in float32 (ε = 1.2e-7), for GMR. The kernel's products are
     ``Precision.HIGHEST``, and training traces the packed form with full float32 products too
     (``mdgps.iteration``); on the CPU both are IEEE float32 anyway."""
-    pol, cfg = _policy("gmr")
-    data = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), _full_data(13))
-    params = pol.init(jax.random.key(2), dX, dU, jnp.float32)
-    # test_packed_sstep_equals_reference_float32's configuration (its packed program is compiled)
-    scfg = SStepConfig(epochs=2, batch_size=20)
-    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="packed")
-    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl="kernel")
-    delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(jnp.float32)]
-    steps = scfg.epochs * (B // scfg.batch_size)
-    for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
-        assert a.dtype == b.dtype
-        np.testing.assert_allclose(a, b, rtol=0, atol=8 * delta * scfg.lr * steps)
+    new_m, ref_m, delta = _forms_agree("gmr", "packed", "kernel", jnp.float32)
     np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
-    assert new_m["loss"].dtype == jnp.float32
-    assert not np.allclose(ravel_pytree(new.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
 
 
 def test_kernel_without_a_kernel_runs_packed(policy):
