@@ -7,9 +7,12 @@ states, GMR adds the 80 forward-pass means; AB doubles both) for several loop un
 
     python -m benchmarks.sstep --algorithm gmr,mdgps --scenario A,AB --unroll 1,4,16 --out s.json
 
-The S-step is traced with full float32 matrix products, as training traces it (``mdgps.iteration``
-runs under ``jax.default_matmul_precision("highest")``; a GPU's float32 default is TF32). The data are synthetic (random states, gains, symmetric positive-definite precisions and state
-covariances) with the shapes of the real ones: the time of a step does not depend on the values.
+The S-step is traced with full float32 matrix products, as training traces it
+(``mdgps.iteration`` runs under ``jax.default_matmul_precision("highest")``; a GPU's float32
+default is TF32). The data are synthetic (random states, gains, symmetric positive-definite
+precisions and state covariances) with the shapes of the real ones: the time of a step does not
+depend on the values. ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
+Adam step, the device's busy and idle time, the costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
 the default on a GPU; the benchmark's default) beside the reference form it is tested against
