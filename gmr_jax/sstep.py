@@ -19,7 +19,9 @@ Two forms of the same optimisation (``sstep``'s ``impl``), equal to round-off
 per epoch; and "packed", which runs the policy's ``TrainingForm`` in one loop over all minibatch
 steps with everything that does not depend on the weights (shuffles, latent noise, per-datum
 constants, Adam's bias corrections) prepared before the loop. A GPU runs each operation of a
-step as a kernel launch, and the packed form needs far fewer (GMR: about half); on a CPU, where
+step as a kernel, and each dependent kernel costs about 1.7 µs on an H100 however little it
+computes (``benchmarks/kernel_floor.py``), so the packed form's far fewer operations (GMR: about
+half) are what makes it faster there; on a CPU, where
 a step costs arithmetic and memory traffic instead, its zero padding makes it slower, so the
 backend picks the default (``default_impl``).
 """
@@ -102,7 +104,8 @@ IMPLS = ("packed", "reference", "kernel")
 def default_impl() -> str:
     """The S-step form for JAX's default backend: "packed" on an accelerator, "reference" on a CPU.
 
-    On a GPU a minibatch step is bound by kernel launches, which the packed form cuts. On a CPU
+    On a GPU a minibatch step is bound by its number of dependent kernels, which the packed form
+    cuts. On a CPU
     it is bound by arithmetic and memory traffic, and there the packed form's zero padding (about
     three times GMR's weights in Adam's update and in the single weight-gradient product) costs
     more than the operations it saves (benchmarks/sstep.py measures both).
@@ -268,7 +271,7 @@ def _fit_reference(policy: Policy, params: PolicyParams, train: SStepData, key, 
     opt = optax.adam(cfg.lr, b1=cfg.b1, b2=cfg.b2, eps=cfg.eps)
 
     # The optimiser works on one flat parameter vector: Adam's update and the L2 term are then
-    # one fused kernel each instead of one per weight matrix (a GPU step is launch-bound).
+    # one fused kernel each instead of one per weight matrix (a GPU step costs per kernel).
     flat0, unravel = ravel_pytree(params.net)
 
     def objective(flat, batch, k):

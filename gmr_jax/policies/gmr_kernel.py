@@ -1,13 +1,18 @@
 """GMR's S-step as one GPU kernel (Pallas, Triton): every Adam step of an S-step in one launch.
 
 The S-step's minibatch steps are strictly sequential and tiny (a minibatch of 20 rows through
-three networks of about 22 000 weights), so an XLA program spends its time launching the ~45
-kernels of each step, not computing. This kernel runs the whole loop inside one program of one
+three networks of about 22 000 weights), so an XLA program spends its time in the ~57 dependent
+kernels of each step (about 1.7 µs each on an H100), not computing. This kernel runs the whole loop inside one program of one
 thread block: per step it gathers the minibatch's rows, runs the three networks forward, the
 loss, the backward pass written out by hand (the same closed forms as ``gmr.fused_head`` and
 ``gmr.reparameterize``) and Adam, with the weights and Adam's moments in global memory (they
-stay in the GPU's caches). Under ``jax.vmap`` (seeds) every seed gets its own thread block, so
-many seeds take about the time of one.
+stay in the GPU's caches). Under ``jax.vmap`` (seeds) every seed gets its own thread block.
+
+Speed (``benchmarks/RESULTS.md``, eighth and ninth sessions): on an H100 the kernel is about five
+times slower than the packed form (about 550 µs per Adam step in float32, 256 seeds 4.2 times one
+seed's time). Nsight Compute shows why: 32 registers and an 8.6 KB stack per thread, the warps
+waiting on local memory (spills) two thirds of the time, about 1.5 % of the SM's FP32 rate. It
+is therefore opt-in (``impl="kernel"``), kept for the rewrite that keeps its working set on chip.
 
 It computes the S-step's packed form (``gmr_jax.sstep``, ``impl="packed"``) with the same
 minibatches, noise and Adam steps; the sums run in another order, so the two agree to round-off
