@@ -46,7 +46,7 @@ def profile(fn, *args, trace_dir: str | None = None) -> dict:
     ``trace_dir``, the compilation runs under JAX's profiler and ``phases`` lists XLA's compiler
     phases and passes by total time (``benchmarks.trace.host_event_totals``)."""
     t0 = time.perf_counter()
-    with jax.default_matmul_precision("highest"):  # as mdgps.iteration traces its stages
+    with jax.default_matmul_precision(mdgps.MATMUL_PRECISION):  # as mdgps.iteration traces its stages
         lowered = jax.jit(fn).lower(*args)
     t1 = time.perf_counter()
     if trace_dir is None:

@@ -32,7 +32,7 @@ def fit_both(cfg: config.Config, seed: int):
     for dtype in (jnp.float64, jnp.float32):
         cast = lambda t: jax.tree_util.tree_map(  # noqa: E731
             lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, t)
-        with jax.default_matmul_precision("highest"):
+        with jax.default_matmul_precision(mdgps.MATMUL_PRECISION):
             prior, dyn = jax.jit(lambda p, s, k: mdgps.dynamics_stage(cfg, p, s, k))(
                 cast(state.dyn_prior), cast(samples), key)
         out.append((prior, dyn))

@@ -8,10 +8,9 @@ states, GMR adds the 80 forward-pass means; AB doubles both) for several loop un
     python -m benchmarks.sstep --algorithm gmr,mdgps --scenario A,AB --unroll 1,4,16 --out s.json
 
 The S-step is traced with full float32 matrix products, as training traces it
-(``mdgps.iteration`` runs under ``jax.default_matmul_precision("highest")``; a GPU's float32
-default is TF32). The data are synthetic (random states, gains, symmetric positive-definite
-precisions and state covariances) with the shapes of the real ones: the time of a step does not
-depend on the values. ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
+(``mdgps.MATMUL_PRECISION``; a GPU's float32 default is TF32). The data are synthetic (random
+states, gains, symmetric positive-definite precisions and state covariances) with the shapes of
+the real ones: the time of a step does not depend on the values. ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
 Adam step, the device's busy and idle time, the costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
@@ -170,16 +169,6 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def _as_in_training(fn):
-    """``fn`` traced with full float32 matrix products, as ``mdgps.iteration`` traces its stages
-    (the GPU's default for float32 is TF32 inputs; without this the benchmark would time other
-    kernels than training runs)."""
-    def traced(*args, **kwargs):
-        with jax.default_matmul_precision("highest"):
-            return fn(*args, **kwargs)
-    return traced
-
-
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration; returns its result row (and prints it) and
     the trained weights of the first timed S-step as one vector."""
@@ -188,15 +177,16 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
     if args.seeds == 1:
         params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
         data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
-        fn = jax.jit(lambda p, d, k: _as_in_training(sstep.sstep)(pol, p, d, k, cfg.sstep, impl=impl))
+        fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))
     else:
         keys = jax.random.split(jax.random.PRNGKey(0), args.seeds)
         params = jax.vmap(lambda k: mdgps.init(cfg, k).policy.params)(keys)
         data = jax.vmap(lambda k: synthetic_data(cfg, k, dtype))(keys)
-        fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: _as_in_training(sstep.sstep)(pol, p, d, k, cfg.sstep, impl=impl))(
+        fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))(
             p, d, jax.random.split(k, args.seeds)))
     t0 = time.perf_counter()
-    compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
+    with jax.default_matmul_precision(mdgps.MATMUL_PRECISION):  # traced as training traces it
+        compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
     compile_s = time.perf_counter() - t0
     hlo = compiled.as_text()
     if args.hlo_dir:

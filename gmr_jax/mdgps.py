@@ -79,6 +79,13 @@ class TrainState(NamedTuple):
     policy: PolicyState | None = None
 
 
+MATMUL_PRECISION = "highest"
+"""``jax.default_matmul_precision`` of every stage (``init``, ``iteration``): full float32 matrix
+products. The GPU's float32 default (TF32 inputs, ~1e-3 relative error) breaks the Cholesky
+factorisations of the dynamics fit and the LQR; code that times a stage on its own traces it
+under the same setting."""
+
+
 def _zeros_like_tree(tree):
     return jax.tree_util.tree_map(jnp.zeros_like, tree)
 
@@ -102,7 +109,7 @@ def init(cfg: Config, key: Array) -> TrainState:
     x0 = tasks.initial_states(cfg.task)
     M = x0.shape[0]
     dtype = x0.dtype
-    with jax.default_matmul_precision("highest"):
+    with jax.default_matmul_precision(MATMUL_PRECISION):
         traj = jax.vmap(lambda x: lqr.init_lqr(x, T, dU, cfg.sim.control_dt, cfg.init))(x0)
     prior = _broadcast_conditions(dyn_lib.dynamics_prior_empty(T, dX, dU, cfg.dynamics, dtype), M)
     dyn0 = Dynamics(
@@ -325,7 +332,7 @@ def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = 
     All matrix products run at full float32 precision: the GPU's default (TF32 inputs, ~1e-3
     relative error) breaks the Cholesky factorisations of the dynamics fit and the LQR.
     """
-    with jax.default_matmul_precision("highest"):
+    with jax.default_matmul_precision(MATMUL_PRECISION):
         first = state.iteration == 0 if first is None else jnp.asarray(first)
         x0 = tasks.initial_states(cfg.task, state.eta.dtype)
         k_sample, k_dyn, k_lin, k_catch_up, k_sstep = jax.random.split(key, 5)
