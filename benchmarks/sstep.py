@@ -156,6 +156,8 @@ def parse_args(argv=None):
     p.add_argument("--impl", default="packed", help="comma-separated S-step forms: kernel, packed, reference")
     p.add_argument("--num-warps", default=str(gmr_kernel.NUM_WARPS),
                    help="comma-separated warps per thread block of the kernel form")
+    p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
+                   help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
     p.add_argument("--repeats", type=int, default=3, help="timed S-steps (median)")
     p.add_argument("--seeds", type=int, default=1,
@@ -217,11 +219,12 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
         profile["device_lines"] = trace.device_lines(rec[0])
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
+           "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile}
-    name = f"{impl}/{row['num_warps']}" if impl == "kernel" else impl
-    print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:9s}: {run_s:7.3f} s for {steps} steps "
+    name = f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel" else impl
+    print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:16s}: {run_s:7.3f} s for {steps} steps "
           f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
           f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
     if profile and profile["kernels"]:
@@ -251,9 +254,11 @@ def main(argv=None) -> int:
             for unroll in [int(u) for u in args.unroll.split(",")]:
                 first = None
                 for impl in args.impl.split(","):
-                    for warps in ([int(w) for w in args.num_warps.split(",")] if impl == "kernel" else [None]):
+                    variants = ([(int(w), d) for w in args.num_warps.split(",") for d in args.kernel_dot.split(",")]
+                                if impl == "kernel" else [(None, None)])
+                    for warps, dot in variants:
                         if warps:
-                            gmr_kernel.NUM_WARPS = warps
+                            gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
                         row, weights = measure(algorithm, scenario, unroll, impl, args, dtype)
                         # every form trains the same weights to round-off: the largest difference
                         # from the first form listed, relative to the largest weight

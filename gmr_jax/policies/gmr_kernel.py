@@ -204,14 +204,26 @@ def kernel_rows(cfg: GMRConfig, lay: Layout, params: PolicyParams, rows) -> Kern
                       logdet=rows.logdet, scale=pad(scale, (X,)))
 
 
-def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool):
+def _precision(dot: str, dtype, interpret: bool):
+    """The kernel's matrix-product precision for ``dot`` (one of ``DOTS``).
+
+    "tf32x3" applies to float32 on a GPU only: Pallas's interpreter runs on XLA:CPU, which has
+    no TF32 algorithms, and float64 products have one exact algorithm."""
+    if dot not in DOTS:
+        raise ValueError(f"gmr_kernel: dot must be one of {DOTS}, got {dot!r}")
+    if dot == "tf32x3" and not interpret and jnp.dtype(dtype) == jnp.float32:
+        return lax.DotAlgorithmPreset.TF32_TF32_F32_X3
+    return lax.Precision.HIGHEST
+
+
+def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool, precision):
     """The kernel: (idx, eps, c1, c2, KernelRows…, θ, μ, ν in) -> (θ, μ, ν, stats) in place."""
     dU, X, U, b = lay.dU, lay.X, lay.U, lay.b
     bs = scfg.batch_size
     s = math.log(cfg.cov_std_range)
     c = cfg.cov_offdiag_bound
     slope = cfg.negative_slope
-    hi = lax.Precision.HIGHEST
+    hi = precision
     blocks = lay.blocks
 
     def dot(a, w):
@@ -402,23 +414,31 @@ def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool):
 
 NUM_WARPS = 8
 
+DOTS = ("ieee", "tf32x3")
+DOT = "ieee"
+"""The default matrix-product form inside the kernel: "ieee" (IEEE float32 products on the SM's
+FMA units, as ``Precision.HIGHEST``) or "tf32x3" (three TF32 tensor-core products per product,
+the split a = a_hi + a_lo with a_hi, a_lo TF32 and a·b ≈ a_hi·b_hi + a_hi·b_lo + a_lo·b_hi: a
+relative error per product term of about 2⁻²¹ instead of float32's 2⁻²⁴; float32 on a GPU only)."""
+
 
 @functools.lru_cache(maxsize=None)
 def _call(cfg: GMRConfig, scfg: SStepConfig, dX: int, dU: int, steps: int, dtype, interpret: bool,
-          num_warps: int):
+          num_warps: int, dot: str = "ieee"):
     """The pallas_call of one configuration and shape (cached)."""
     lay = layout(cfg, dX, dU, scfg.batch_size)
     n = lay.size
     out_shape = [jax.ShapeDtypeStruct((n,), dtype)] * 3 + [jax.ShapeDtypeStruct((steps, len(STATS)), dtype)]
     return pl.pallas_call(
-        _body(cfg, scfg, lay, interpret), out_shape=out_shape,
+        _body(cfg, scfg, lay, interpret, _precision(dot, dtype, interpret)), out_shape=out_shape,
         input_output_aliases={13: 0, 14: 1, 15: 2}, interpret=interpret,
         compiler_params=plt.CompilerParams(num_warps=num_warps, num_stages=1),
         name="gmr_sstep")
 
 
 def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx: Array, noise: Array,
-        c1: Array, c2: Array, *, num_warps: int | None = None, interpret: bool | None = None):
+        c1: Array, c2: Array, *, num_warps: int | None = None, dot: str | None = None,
+        interpret: bool | None = None):
     """All Adam steps of an S-step in one kernel.
 
     Args:
@@ -428,6 +448,7 @@ def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx: Arra
       idx: [steps, batch_size] int, each step's rows; noise: [steps, batch_size, latent] ε.
       c1, c2: [steps] Adam's bias corrections.
       num_warps: the thread block's warps (default ``NUM_WARPS``).
+      dot: the products' form, one of ``DOTS`` (default ``DOT``).
       interpret: run in Pallas's interpreter (default: off a GPU).
     Returns: (net (Flax), stats [steps, len(STATS)]: total, value and the aux entries per step).
     """
@@ -441,7 +462,8 @@ def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx: Arra
     idx = jnp.pad(idx.astype(jnp.int32), ((0, 0), (0, lay.b - bs)))
     eps = jnp.pad(noise.astype(dtype), ((0, 0), (0, lay.b - bs), (0, lay.Z - noise.shape[-1])))
     theta0 = pack(cfg, lay, params.net).astype(dtype)
-    call = _call(cfg, scfg, dX, dU, steps, jnp.dtype(dtype), bool(interpret), num_warps or NUM_WARPS)
+    call = _call(cfg, scfg, dX, dU, steps, jnp.dtype(dtype), bool(interpret), num_warps or NUM_WARPS,
+                 dot or DOT)
     theta, _, _, stats = call(idx, eps, c1.astype(dtype), c2.astype(dtype), *kr, theta0,
                               jnp.zeros_like(theta0), jnp.zeros_like(theta0))
     return unpack(cfg, lay, params.net, theta), stats
