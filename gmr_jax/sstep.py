@@ -225,27 +225,36 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     Everything that does not depend on the weights is done before the loop: the per-datum
     constants (one matrix, so a minibatch is one gather), every epoch's shuffle, every
     minibatch's random numbers and Adam's bias corrections (``_schedule``). The loop body is then
-    the gather, ``form.value_and_grad``, the L2 term and Adam.
+    the gather, ``form.value_and_grad``, the L2 term and Adam. Adam's moments cover the entries
+    ``form.trained`` names (the layout's padding has a zero gradient and stays 0): the update
+    reads and writes those entries only, which with many seeds side by side is most of a step's
+    memory traffic saved.
     Returns (net, (loss [epochs], data_loss [epochs], aux)).
     """
     theta0 = form.pack(params)
     idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
     rows = form.rows(params, train)
+    trained = None if form.trained is None else form.trained(params)
+    if trained is not None and len(trained) == theta0.shape[-1]:
+        trained = None
     stats_def = []
 
     def step(carry, inputs):
         theta, mu, nu = carry
         i, eps, c1, c2 = inputs
         (value, aux), grad = form.value_and_grad(params, theta, rows[i], eps)
+        w = theta if trained is None else theta[trained]
+        g = grad if trained is None else grad[trained]
         # d(β·Σθ²)/dθ as autodiff forms it, β·(2θ)
-        theta_new, mu, nu = adam_update(cfg, theta, mu, nu, grad + cfg.weight_decay * (2.0 * theta),
-                                        c1, c2)
-        stats, treedef = _stats(value + cfg.weight_decay * l2_penalty(theta), value, aux)
+        w_new, mu, nu = adam_update(cfg, w, mu, nu, g + cfg.weight_decay * (2.0 * w), c1, c2)
+        theta_new = w_new if trained is None else theta.at[trained].set(
+            w_new, indices_are_sorted=True, unique_indices=True)
+        stats, treedef = _stats(value + cfg.weight_decay * l2_penalty(w), value, aux)
         stats_def.append(treedef)
         return (theta_new, mu, nu), stats
 
-    zeros = jnp.zeros_like(theta0)
-    (theta, *_), stats = lax.scan(step, (theta0, zeros, zeros), (idx, noise, c1, c2),
+    moments = jnp.zeros_like(theta0 if trained is None else theta0[trained])
+    (theta, *_), stats = lax.scan(step, (theta0, moments, moments), (idx, noise, c1, c2),
                                   unroll=min(cfg.unroll, len(idx)))
     means = _epoch_means(cfg, stats)
     return form.unpack(params, theta), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))

@@ -44,6 +44,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from gmr_jax import linalg
 
@@ -130,6 +131,10 @@ class TrainingForm(NamedTuple):
       value_and_grad: (params, θ [n], rows [b, F], noise [b, ...] or None) -> ((value, aux),
         grad [n]), the data term of a minibatch of b rows (``loss``'s value and aux dict) and its
         gradient with respect to θ.
+      trained: (params) -> the sorted indices [m] (numpy, static) of θ's entries that are not
+        padding, or None: every entry. Adam then keeps its moments for these m entries only and
+        updates θ there (the padding stays 0), so a step's update reads and writes m entries of
+        each array, not n (with many seeds side by side that update is bound by memory traffic).
     """
 
     pack: Callable[[PolicyParams], Array]
@@ -137,6 +142,7 @@ class TrainingForm(NamedTuple):
     rows: Callable[[PolicyParams, SStepData], Array]
     noise: Callable[..., Array] | None
     value_and_grad: Callable[..., tuple[tuple[Array, dict], Array]]
+    trained: Callable[[PolicyParams], np.ndarray] | None = None
 
 
 class Policy(NamedTuple):
@@ -341,6 +347,17 @@ def pack_dense(layout: DenseLayout, layers) -> Array:
         rows = jnp.concatenate([kernel, jnp.zeros((I - a, b), kernel.dtype), bias[None]], axis=0)
         blocks.append(jnp.pad(rows, ((0, 0), (0, O - b))))
     return jnp.stack(blocks)
+
+
+def dense_entries(layout: DenseLayout) -> np.ndarray:
+    """The sorted flat indices into W [S, I+1, O].reshape(-1) of the entries that are not padding:
+    each slot's kernel W[s, :a, :b] and bias W[s, I, :b]."""
+    I, O = layout.width_in, layout.width_out
+    mask = np.zeros(layout.array_shape, dtype=bool)
+    for s, (a, b) in enumerate(layout.shapes):
+        mask[s, :a, :b] = True
+        mask[s, I, :b] = True
+    return np.flatnonzero(mask)
 
 
 def unpack_dense(layout: DenseLayout, W: Array) -> list[tuple[Array, Array]]:

@@ -74,7 +74,7 @@ import numpy as np
 from gmr_jax.config import GMRConfig
 from gmr_jax.policies import gmr_kernel
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
-                                   default_float, dense_chain, dense_layout, dense_stack,
+                                   default_float, dense_chain, dense_entries, dense_layout, dense_stack,
                                    dense_value_and_grad, flax_dense_layers, flax_dense_params,
                                    identity_normalization, normalize_input, pack_dense, pack_rows, squash,
                                    symmetrize, target_logdet, unpack_dense, unpack_rows)
@@ -726,9 +726,13 @@ def _training_form(cfg: GMRConfig, net: SimpleNamespace, terms: SimpleNamespace,
                                                   rows.shape[0])
         return (value, aux), grad.reshape(-1)
 
+    def trained(params: PolicyParams):
+        """TrainingForm.trained: θ's entries outside the layout's padding."""
+        return dense_entries(packing.layout(*net.dims(params))[0])
+
     return TrainingForm(pack=packing.pack, unpack=packing.unpack,
-                            rows=lambda params, data: pack_rows(fused_rows(params, data)),
-                            noise=terms.noise, value_and_grad=packed_value_and_grad)
+                        rows=lambda params, data: pack_rows(fused_rows(params, data)),
+                        noise=terms.noise, value_and_grad=packed_value_and_grad, trained=trained)
 
 
 

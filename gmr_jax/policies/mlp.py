@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from gmr_jax.config import MLPConfig
 from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, TrainingForm, default_float,
-                                   dense_chain, dense_layout, dense_stack, dense_value_and_grad,
+                                   dense_chain, dense_entries, dense_layout, dense_stack, dense_value_and_grad,
                                    flax_dense_layers, flax_dense_params, identity_normalization,
                                    normalize_input, pack_dense, pack_rows, quadratic_rows, squash, symmetrize,
                                    unpack_dense, unpack_rows, weighted_action_error)
@@ -160,7 +160,8 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
         return (value, aux), grad.reshape(-1)
 
     training = TrainingForm(pack=pack, unpack=unpack, rows=rows, noise=None,
-                            value_and_grad=packed_value_and_grad)
+                            value_and_grad=packed_value_and_grad,
+                            trained=lambda params: dense_entries(layout(params)))
 
     def finalize(params: PolicyParams, data: SStepData) -> PolicyParams:
         """Closed-form variance after the S-step (data: unweighted precisions, normalised wt)."""
