@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 from jax import lax
@@ -225,39 +226,51 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     Everything that does not depend on the weights is done before the loop: the per-datum
     constants (one matrix, so a minibatch is one gather), every epoch's shuffle, every
     minibatch's random numbers and Adam's bias corrections (``_schedule``). The loop body is then
-    the gather, ``form.value_and_grad``, the L2 term and Adam. Adam's moments cover the entries
-    ``form.trained`` names (the layout's padding has a zero gradient and stays 0): the update
-    reads and writes those entries only, which with many seeds side by side is most of a step's
-    memory traffic saved.
+    the gather, ``form.value_and_grad``, the L2 term and Adam.
+
+    With ``form.trained``, the loop carries only the trained entries w (and Adam's moments of
+    them): θ is formed from w each step by one gather (zeros in the padding) and the gradient's
+    trained entries by another. Adam's update then reads and writes those entries only, which
+    with many seeds side by side is a large share of a step's memory traffic; a scatter of the
+    updated entries into θ would cost more than it saves. The arithmetic on every trained entry
+    is the same as without ``form.trained``.
     Returns (net, (loss [epochs], data_loss [epochs], aux)).
     """
     theta0 = form.pack(params)
     idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
     rows = form.rows(params, train)
-    trained = None if form.trained is None else form.trained(params)
-    if trained is not None and len(trained) == theta0.shape[-1]:
+    n = theta0.shape[-1]
+    trained = None if form.trained is None else np.asarray(form.trained(params))
+    if trained is not None and len(trained) == n:
         trained = None
+    if trained is None:
+        expand = lambda w: w  # noqa: E731
+        w0 = theta0
+    else:
+        # θ = where(padding, 0, w[source]): each entry's position in w (0 in the padding)
+        is_trained = np.zeros(n, dtype=bool)
+        is_trained[trained] = True
+        source = np.where(is_trained, np.cumsum(is_trained) - 1, 0)
+        expand = lambda w: jnp.where(is_trained, w[source], 0)  # noqa: E731
+        w0 = theta0[trained]
     stats_def = []
 
     def step(carry, inputs):
-        theta, mu, nu = carry
+        w, mu, nu = carry
         i, eps, c1, c2 = inputs
-        (value, aux), grad = form.value_and_grad(params, theta, rows[i], eps)
-        w = theta if trained is None else theta[trained]
+        (value, aux), grad = form.value_and_grad(params, expand(w), rows[i], eps)
         g = grad if trained is None else grad[trained]
         # d(β·Σθ²)/dθ as autodiff forms it, β·(2θ)
         w_new, mu, nu = adam_update(cfg, w, mu, nu, g + cfg.weight_decay * (2.0 * w), c1, c2)
-        theta_new = w_new if trained is None else theta.at[trained].set(
-            w_new, indices_are_sorted=True, unique_indices=True)
         stats, treedef = _stats(value + cfg.weight_decay * l2_penalty(w), value, aux)
         stats_def.append(treedef)
-        return (theta_new, mu, nu), stats
+        return (w_new, mu, nu), stats
 
-    moments = jnp.zeros_like(theta0 if trained is None else theta0[trained])
-    (theta, *_), stats = lax.scan(step, (theta0, moments, moments), (idx, noise, c1, c2),
-                                  unroll=min(cfg.unroll, len(idx)))
+    zeros = jnp.zeros_like(w0)
+    (w, *_), stats = lax.scan(step, (w0, zeros, zeros), (idx, noise, c1, c2),
+                              unroll=min(cfg.unroll, len(idx)))
     means = _epoch_means(cfg, stats)
-    return form.unpack(params, theta), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
+    return form.unpack(params, expand(w)), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
 
 
 def _fit_kernel(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):

@@ -132,8 +132,8 @@ class TrainingForm(NamedTuple):
         grad [n]), the data term of a minibatch of b rows (``loss``'s value and aux dict) and its
         gradient with respect to θ.
       trained: (params) -> the sorted indices [m] (numpy, static) of θ's entries that are not
-        padding, or None: every entry. Adam then keeps its moments for these m entries only and
-        updates θ there (the padding stays 0), so a step's update reads and writes m entries of
+        padding, or None: every entry. The S-step then trains these m entries only (θ is formed
+        from them with zeros in the padding), so Adam's update reads and writes m entries of
         each array, not n (with many seeds side by side that update is bound by memory traffic).
     """
 

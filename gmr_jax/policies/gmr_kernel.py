@@ -253,22 +253,13 @@ def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool, preci
         rho = jnp.where(lax.broadcasted_iota(jnp.int32, (b,), 0) < bs, 1.0 / bs, 0.0).astype(dtype)
         scale = scale_ref[...]
 
-        # θ's block offsets are added to a per-step zero the compiler cannot prove zero (read from
-        # the step's row indices), so that the address tensors of every block's loads and stores
-        # are formed where they are used: as loop invariants they would be hoisted out of the
-        # step loop and held, 64-bit per element, across it (spilled registers).
-        opaque_zero = [0]
-
-        def at(offset, n):
-            return pl.ds(offset + opaque_zero[0], n)
-
         def weight(name):
             blk = blocks[name]
-            return theta_ref[at(blk.offset, blk.fan_in * blk.fan_out)].reshape(blk.fan_in, blk.fan_out)
+            return theta_ref[pl.ds(blk.offset, blk.fan_in * blk.fan_out)].reshape(blk.fan_in, blk.fan_out)
 
         def bias(name):
             blk = blocks[name]
-            return theta_ref[at(blk.bias_offset, blk.fan_out)]
+            return theta_ref[pl.ds(blk.bias_offset, blk.fan_out)]
 
         def dense(h, name):
             return dot(h, weight(name)) + bias(name)[None, :]
@@ -282,14 +273,12 @@ def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool, preci
                 h = act(pre)
             return h, saved
 
-        def back(g, saved, names, update):
-            """Backward through hidden layers (g: gradient of the last output) -> input gradient;
-            each layer's weights are updated (``update``) once its input gradient is formed."""
+        def back(g, saved, names, grads):
+            """Backward through hidden layers (g: gradient of the last output) -> input gradient."""
             for (h, pre), name in zip(reversed(saved), reversed(names)):
                 d = act_grad(pre, g)
-                gW, gb = t_dot(h, d), jnp.sum(d, axis=0)
+                grads[name] = (t_dot(h, d), jnp.sum(d, axis=0))
                 g = dot_t(d, weight(name))
-                update(name, gW, gb)
             return g
 
         def rowwise(A, S):
@@ -316,7 +305,6 @@ def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool, preci
             return out
 
         def step(i, carry):
-            opaque_zero[0] = jnp.minimum(idx_ref[i, 0], 0)  # row indices are ≥ 0
             idx = idx_ref[i, :]
             xn, xe, sig = xn_ref[idx, :], xe_ref[idx, :], sig_ref[idx, :, :]
             tgt, P, Kp = tgt_ref[idx, :], prc_ref[idx, :, :], K_ref[idx, :, :]
@@ -368,27 +356,8 @@ def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool, preci
                 aux[k] = 0.5 * aux[k]
             value = aux["recon"] + cfg.alpha * aux["latent_kl"] + aux["action"] + aux["gain"] + aux["cov"]
 
-            # ---- backward (cotangents of the per-row terms: ρ = 1/bs on real rows). Each block's
-            # L2 term and Adam step run as soon as its gradient and the gradient of its input are
-            # formed (the old weights are read for the latter, nothing reads them later in the
-            # step), in the order the blocks' gradients are formed: the same arithmetic as
-            # updating all blocks at the end, without keeping every gradient live until then.
-            c1, c2 = c1_ref[i], c2_ref[i]
-            l2 = [jnp.zeros((), dtype)]
-
-            def update(name, gW, gb):
-                if not interpret:
-                    plt.debug_barrier()  # every thread has read the block's old weights
-                blk = blocks[name]
-                for start, n, g in ((blk.offset, blk.fan_in * blk.fan_out, gW.reshape(-1)),
-                                    (blk.bias_offset, blk.fan_out, gb)):
-                    sl = at(start, n)
-                    theta = theta_ref[sl]
-                    l2[0] = l2[0] + jnp.sum(jnp.square(theta))
-                    theta, m_new, v_new = adam_update(scfg, theta, mu_ref[sl], nu_ref[sl],
-                                                      g + scfg.weight_decay * (2.0 * theta), c1, c2)
-                    theta_ref[sl], mu_ref[sl], nu_ref[sl] = theta, m_new, v_new
-
+            # ---- backward (cotangents of the per-row terms: ρ = 1/bs on real rows)
+            grads = {}
             ct_half = 0.5 * rho
             g_du = (2.0 * ct_half)[:, None] * Pdu
             g_G = (g_du[:, :, None] * xe[:, None, :]
@@ -399,27 +368,34 @@ def _body(cfg: GMRConfig, scfg: SStepConfig, lay: Layout, interpret: bool, preci
             g_full = jnp.where(strict, g_V * (1.0 - jnp.square(T)),
                                jnp.where(eye & valid[:, None], (q * (1.0 - jnp.square(t)))[:, :, None], 0.0))
             D_gain, D_chol = g_G.reshape(b, U * X), g_full.reshape(b, U * U)
-            grad_gain = (t_dot(ht, D_gain), jnp.sum(D_gain, axis=0))
-            grad_chol = (t_dot(ht, D_chol), jnp.sum(D_chol, axis=0))
-            g_top = dot_t(D_gain, weight("gain")) + dot_t(D_chol, weight("chol"))
-            update("gain", *grad_gain)
-            update("chol", *grad_chol)
-            g_z = back(g_top, trans_saved, lay.translation[:-2], update)
+            grads["gain"] = (t_dot(ht, D_gain), jnp.sum(D_gain, axis=0))
+            grads["chol"] = (t_dot(ht, D_chol), jnp.sum(D_chol, axis=0))
+            g_z = back(dot_t(D_gain, weight("gain")) + dot_t(D_chol, weight("chol")), trans_saved,
+                       lay.translation[:-2], grads)
             D_xhat = (-2.0 * rho * w)[:, None] * (xn - xhat)
-            grad_xhat = (t_dot(hd, D_xhat), jnp.sum(D_xhat, axis=0))
-            g_top = dot_t(D_xhat, weight("xhat"))
-            update("xhat", *grad_xhat)
-            g_z = g_z + back(g_top, dec_saved, lay.decoder[:-1], update)
+            grads["xhat"] = (t_dot(hd, D_xhat), jnp.sum(D_xhat, axis=0))
+            g_z = g_z + back(dot_t(D_xhat, weight("xhat")), dec_saved, lay.decoder[:-1], grads)
             ct_kl = (cfg.alpha * 0.5 * rho * w)[:, None]
             g_mu = g_z + ct_kl * (2.0 * mu)
             g_logvar = g_z * eps * (0.5 * std) + ct_kl * (var - 1.0)
-            grad_mu = (t_dot(h, g_mu), jnp.sum(g_mu, axis=0))
-            grad_logvar = (t_dot(h, g_logvar), jnp.sum(g_logvar, axis=0))
-            g_top = dot_t(g_mu, weight("mu")) + dot_t(g_logvar, weight("logvar"))
-            update("mu", *grad_mu)
-            update("logvar", *grad_logvar)
-            back(g_top, enc_saved, lay.encoder[:-2], update)
-            l2 = l2[0]
+            grads["mu"] = (t_dot(h, g_mu), jnp.sum(g_mu, axis=0))
+            grads["logvar"] = (t_dot(h, g_logvar), jnp.sum(g_logvar, axis=0))
+            back(dot_t(g_mu, weight("mu")) + dot_t(g_logvar, weight("logvar")), enc_saved,
+                 lay.encoder[:-2], grads)
+
+            # ---- L2 term and Adam, block by block
+            c1, c2 = c1_ref[i], c2_ref[i]
+            l2 = jnp.zeros((), dtype)
+            for name, (gW, gb) in grads.items():
+                blk = blocks[name]
+                for start, n, g in ((blk.offset, blk.fan_in * blk.fan_out, gW.reshape(-1)),
+                                    (blk.bias_offset, blk.fan_out, gb)):
+                    sl = pl.ds(start, n)
+                    theta = theta_ref[sl]
+                    l2 = l2 + jnp.sum(jnp.square(theta))
+                    theta, m_new, v_new = adam_update(scfg, theta, mu_ref[sl], nu_ref[sl],
+                                                      g + scfg.weight_decay * (2.0 * theta), c1, c2)
+                    theta_ref[sl], mu_ref[sl], nu_ref[sl] = theta, m_new, v_new
             stats = {"total": value + scfg.weight_decay * l2, "value": value, **aux}
             k8 = lax.broadcasted_iota(jnp.int32, (len(STATS),), 0)
             row = jnp.zeros((len(STATS),), dtype)
