@@ -159,6 +159,8 @@ def parse_args(argv=None):
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
                    help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
+    p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries, choices=config.SSTEP_ADAM_ENTRIES,
+                   help="sstep.adam_entries of the packed form (default: %(default)s)")
     p.add_argument("--repeats", type=int, default=3, help="timed S-steps (median)")
     p.add_argument("--seeds", type=int, default=1,
                    help="S-steps side by side (jax.vmap over params and data, as over seeds)")
@@ -174,7 +176,8 @@ def parse_args(argv=None):
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration; returns its result row (and prints it) and
     the trained weights of the first timed S-step, [seeds, n]."""
-    cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll)
+    cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
+                       sstep__adam_entries=args.adam_entries)
     pol = policies.for_config(cfg)
     if args.seeds == 1:
         params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
@@ -220,6 +223,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
         profile = trace.kernel_summary(trace.device_events(rec[0]), steps)
         profile["device_lines"] = trace.device_lines(rec[0])
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
+           "adam_entries": args.adam_entries,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,

@@ -39,6 +39,8 @@ def parse_args(argv=None):
     p.add_argument("--T", type=int, default=config.TaskConfig.T)
     p.add_argument("--backend", default="auto", choices=("auto", "mjx", "mujoco"))
     p.add_argument("--repeats", type=int, default=1, help="timed runs per seed count (median)")
+    p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries, choices=config.SSTEP_ADAM_ENTRIES,
+                   help="sstep.adam_entries (default: %(default)s; \"trained\" is faster with many seeds)")
     cli.add_precision_argument(p)
     p.add_argument("--devices", type=int, default=None, help="local devices to split the seeds over "
                    "(default: all)")
@@ -50,7 +52,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     args.precision = cli.setup_jax(args.precision)
     cfg = config.reach(args.scenario, args.algorithm, iterations=args.iterations,
-                       num_samples=args.samples, task__T=args.T, sim__backend=args.backend)
+                       num_samples=args.samples, task__T=args.T, sim__backend=args.backend,
+                       sstep__adam_entries=args.adam_entries)
     mesh = sharding.seed_mesh(args.devices)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,

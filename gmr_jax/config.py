@@ -327,6 +327,7 @@ class PolicyPriorConfig:
 
 
 SSTEP_IMPLS = ("auto", "kernel", "packed", "reference")
+SSTEP_ADAM_ENTRIES = ("all", "trained")
 
 
 @dataclass(frozen=True)
@@ -352,6 +353,13 @@ class SStepConfig:
         the same order). 1 by default: on an H100, 4 saves about 8 % per step but adds about
         10 s to the compilation of a GMR iteration, more than the default run gains
         (benchmarks/RESULTS.md).
+      adam_entries: which entries of the packed form's weight vector Adam carries (speed only:
+        the same arithmetic on every weight): "all" (the layout's zero padding included, one
+        fused update), or "trained" (the real weights only, the packed vector formed from them by
+        a gather each step: about a third of the memory traffic of Adam's update). On an H100
+        "trained" makes the S-step 21 % (GMR) and 10 % (MLP) faster with 256 seeds side by side
+        and 4–13 % slower with one seed (benchmarks/RESULTS.md), so "all" is the default and
+        runs of many seeds should set "trained".
     """
 
     lr: float = 1e-3
@@ -366,9 +374,11 @@ class SStepConfig:
     weight_clip: float = 2.0
     impl: str = "auto"
     unroll: int = 1
+    adam_entries: str = "all"
 
     def __post_init__(self):
         check_choice("sstep.impl", self.impl, SSTEP_IMPLS)
+        check_choice("sstep.adam_entries", self.adam_entries, SSTEP_ADAM_ENTRIES)
         for name in ("epochs", "batch_size", "unroll"):
             check_positive_int(f"sstep.{name}", getattr(self, name))
         for name in ("lr", "eps", "obs_std_floor", "weight_clip"):

@@ -228,19 +228,21 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     minibatch's random numbers and Adam's bias corrections (``_schedule``). The loop body is then
     the gather, ``form.value_and_grad``, the L2 term and Adam.
 
-    With ``form.trained``, the loop carries only the trained entries w (and Adam's moments of
-    them): θ is formed from w each step by one gather (zeros in the padding) and the gradient's
-    trained entries by another. Adam's update then reads and writes those entries only, which
-    with many seeds side by side is a large share of a step's memory traffic; a scatter of the
-    updated entries into θ would cost more than it saves. The arithmetic on every trained entry
-    is the same as without ``form.trained``.
+    With ``cfg.adam_entries == "trained"`` (and a ``form.trained``), the loop carries only the
+    trained entries w and Adam's moments of them: θ is formed from w each step by one gather
+    (zeros in the padding), the gradient's trained entries by another. Adam's update then reads
+    and writes those entries only, a large share of a step's memory traffic with many seeds side
+    by side (a scatter of the updated entries into θ instead costs as much as it saves). Every
+    trained entry sees the same arithmetic either way; only the L2 statistic sums in another
+    order.
     Returns (net, (loss [epochs], data_loss [epochs], aux)).
     """
     theta0 = form.pack(params)
     idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
     rows = form.rows(params, train)
     n = theta0.shape[-1]
-    trained = None if form.trained is None else np.asarray(form.trained(params))
+    trained = (None if form.trained is None or cfg.adam_entries == "all"
+               else np.asarray(form.trained(params)))
     if trained is not None and len(trained) == n:
         trained = None
     if trained is None:

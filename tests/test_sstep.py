@@ -387,6 +387,43 @@ def test_packed_sstep_equals_reference_float32():
     np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
 
 
+@pytest.mark.parametrize("name", ["mlp", "gmr", "gmr_uneven"])
+def test_trained_entries_cover_every_weight(name):
+    """``TrainingForm.trained``: sorted, unique indices of θ that include every entry a weight
+    packs into (the 1s of a packed all-ones network), while every entry outside them is padding
+    (0 in that packing)."""
+    pol, _ = _policy(name)
+    params = pol.init(jax.random.key(7), dX, dU)
+    ones = np.asarray(pol.training.pack(params._replace(net=jax.tree_util.tree_map(jnp.ones_like, params.net))))
+    trained = np.asarray(pol.training.trained(params))
+    assert trained.ndim == 1 and np.all(np.diff(trained) > 0) and 0 <= trained[0] and trained[-1] < ones.size
+    assert set(np.flatnonzero(ones)) <= set(trained.tolist())
+    outside = np.ones(ones.size, bool)
+    outside[trained] = False
+    assert outside.any() and np.all(ones[outside] == 0)
+
+
+@pytest.mark.parametrize("name", ["mlp", "gmr"])
+def test_adam_on_trained_entries_takes_the_same_steps(name):
+    """``SStepConfig.adam_entries="trained"`` (Adam carries the trained entries only and θ is
+    formed from them each step) against "all": the same arithmetic on every weight, so the same
+    S-step up to how XLA fuses (and rounds) the two programs: tolerance from the computation, as
+    in ``test_unrolled_loop_takes_the_same_steps``."""
+    pol, _ = _policy(name)
+    data = _full_data(12)
+    params = pol.init(jax.random.key(2), dX, dU)
+    cfg_all = SStepConfig(epochs=3, batch_size=20)
+    ref, tol = measured_tol(lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg_all, impl="packed"),
+                            (params, data), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-6)
+    got = _sstep(pol, params, data, jax.random.key(3), SStepConfig(epochs=3, batch_size=20, adam_entries="trained"),
+                 impl="packed")
+    assert_trees_within(got, ref, tol)
+    assert not np.allclose(ravel_pytree(got[0].net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+    with pytest.raises(ValueError, match="sstep.adam_entries"):
+        SStepConfig(adam_entries="padding")
+
+
 # ------------------------------------------------ the kernel form against the packed form
 
 @pytest.mark.parametrize("name", ["gmr", "gmr_raw", "gmr_uneven"])
@@ -411,11 +448,27 @@ def test_kernel_sstep_equals_packed(name):
 
 
 def test_kernel_sstep_equals_packed_float32():
-    """As above in float32 (ε = 1.2e-7), for GMR. The kernel's products are
-    ``Precision.HIGHEST``, and training traces the packed form with full float32 products too
-    (``mdgps.iteration``); on the CPU both are IEEE float32 anyway."""
+    """As above in float32 (ε = 1.2e-7), for GMR. In Pallas's interpreter the kernel's products
+    are ``Precision.HIGHEST`` whatever ``gmr_kernel.DOT`` says (XLA:CPU has no TF32), and
+    training traces the packed form with full float32 products too (``mdgps.iteration``).
+    The GPU's "tf32x3" products are measured by ``benchmarks.sstep --kernel-dot``."""
     new_m, ref_m, delta = _forms_agree("gmr", "packed", "kernel", jnp.float32)
     np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
+
+
+def test_kernel_product_precision():
+    """``gmr_kernel``'s product forms: "tf32x3" means three TF32 products in float32 on a GPU
+    only; float64 and the interpreter get IEEE products; an unknown form is refused by name."""
+    from jax import lax
+
+    from gmr_jax.policies import gmr_kernel
+
+    assert gmr_kernel._precision("tf32x3", jnp.float32, False) == lax.DotAlgorithmPreset.TF32_TF32_F32_X3
+    for dot, dtype, interpret in (("tf32x3", jnp.float64, False), ("tf32x3", jnp.float32, True),
+                                  ("ieee", jnp.float32, False)):
+        assert gmr_kernel._precision(dot, dtype, interpret) == lax.Precision.HIGHEST
+    with pytest.raises(ValueError, match="dot must be one of"):
+        gmr_kernel._precision("tf32", jnp.float32, False)
 
 
 def test_kernel_without_a_kernel_runs_packed(policy):
