@@ -10,7 +10,9 @@ states, GMR adds the 80 forward-pass means; AB doubles both) for several loop un
 The S-step is traced with full float32 matrix products, as training traces it
 (``mdgps.MATMUL_PRECISION``; a GPU's float32 default is TF32). The data are synthetic (random
 states, gains, symmetric positive-definite precisions and state covariances) with the shapes of
-the real ones: the time of a step does not depend on the values. ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
+the real ones: the time of a step does not depend on the values. ``--adam-entries all,trained``
+times the packed form with Adam over the whole packed vector and over its trained entries only
+(``SStepConfig.adam_entries``) in the same run. ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
 Adam step, the device's busy and idle time, the costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
@@ -159,8 +161,9 @@ def parse_args(argv=None):
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
                    help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
-    p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries, choices=config.SSTEP_ADAM_ENTRIES,
-                   help="sstep.adam_entries of the packed form (default: %(default)s)")
+    p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries,
+                   help=f"comma-separated sstep.adam_entries of the packed form ({', '.join(config.SSTEP_ADAM_ENTRIES)}; "
+                        "default: %(default)s)")
     p.add_argument("--repeats", type=int, default=3, help="timed S-steps (median)")
     p.add_argument("--seeds", type=int, default=1,
                    help="S-steps side by side (jax.vmap over params and data, as over seeds)")
@@ -170,14 +173,20 @@ def parse_args(argv=None):
     p.add_argument("--profile", metavar="DIR", help="also run each S-step once under JAX's profiler "
                    "(trace written under DIR) and report its kernels per Adam step, their busy time and "
                    "the device's idle share (GPU only; benchmarks.trace)")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    bad = [e for e in args.adam_entries.split(",") if e not in config.SSTEP_ADAM_ENTRIES]
+    if bad:
+        p.error(f"--adam-entries: {', '.join(bad)} not among {', '.join(config.SSTEP_ADAM_ENTRIES)}")
+    return args
 
 
-def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) -> tuple[dict, jax.Array]:
+def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
+            adam_entries: str = config.SStepConfig.adam_entries) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration; returns its result row (and prints it) and
     the trained weights of the first timed S-step, [seeds, n]."""
+    tag = f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}" if impl == "packed" else "")
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
-                       sstep__adam_entries=args.adam_entries)
+                       sstep__adam_entries=adam_entries)
     pol = policies.for_config(cfg)
     if args.seeds == 1:
         params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
@@ -196,7 +205,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
     hlo = compiled.as_text()
     if args.hlo_dir:
         os.makedirs(args.hlo_dir, exist_ok=True)
-        with open(os.path.join(args.hlo_dir, f"{algorithm}_{scenario}_u{unroll}_{impl}.hlo"), "w") as f:
+        with open(os.path.join(args.hlo_dir, f"{tag}.hlo"), "w") as f:
             f.write(hlo)
     times = []
     for r in range(args.repeats):
@@ -218,18 +227,19 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype) 
     run_s = statistics.median(times)
     profile = None
     if args.profile:
-        with trace.recorded(os.path.join(args.profile, f"{algorithm}_{scenario}_u{unroll}_{impl}")) as rec:
+        with trace.recorded(os.path.join(args.profile, tag)) as rec:
             jax.block_until_ready(compiled(params, data, jax.random.PRNGKey(3)))
         profile = trace.kernel_summary(trace.device_events(rec[0]), steps)
         profile["device_lines"] = trace.device_lines(rec[0])
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
-           "adam_entries": args.adam_entries,
+           "adam_entries": adam_entries if impl == "packed" else None,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile}
-    name = f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel" else impl
+    name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
+            else f"{impl}/{adam_entries}" if impl == "packed" else impl)
     print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:16s}: {run_s:7.3f} s for {steps} steps "
           f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
           f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
@@ -260,12 +270,14 @@ def main(argv=None) -> int:
             for unroll in [int(u) for u in args.unroll.split(",")]:
                 first = None
                 for impl in args.impl.split(","):
-                    variants = ([(int(w), d) for w in args.num_warps.split(",") for d in args.kernel_dot.split(",")]
-                                if impl == "kernel" else [(None, None)])
-                    for warps, dot in variants:
+                    variants = ([(int(w), d, None) for w in args.num_warps.split(",") for d in args.kernel_dot.split(",")]
+                                if impl == "kernel" else [(None, None, e) for e in args.adam_entries.split(",")]
+                                if impl == "packed" else [(None, None, None)])
+                    for warps, dot, entries in variants:
                         if warps:
                             gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
-                        row, weights = measure(algorithm, scenario, unroll, impl, args, dtype)
+                        row, weights = measure(algorithm, scenario, unroll, impl, args, dtype,
+                                               entries or config.SStepConfig.adam_entries)
                         # every form trains the same weights to round-off: per seed, the largest
                         # difference from the first form listed relative to that seed's largest
                         # weight; the row reports the largest and the median over seeds
