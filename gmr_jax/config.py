@@ -358,7 +358,7 @@ class SStepConfig:
         fused update), or "trained" (the real weights only, the packed vector formed from them by
         a gather each step: about a third of the memory traffic of Adam's update). On an H100
         "trained" makes the S-step 21 % (GMR) and 10 % (MLP) faster with 256 seeds side by side
-        and 4–13 % slower with one seed (benchmarks/RESULTS.md), so "all" is the default and
+        and 2–13 % slower with one seed (benchmarks/RESULTS.md), so "all" is the default and
         runs of many seeds should set "trained".
     """
 

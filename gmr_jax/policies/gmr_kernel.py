@@ -423,14 +423,14 @@ DOT = "tf32x3"
 """The default matrix-product form inside the kernel: "ieee" (IEEE float32 products on the SM's
 FMA units, as ``Precision.HIGHEST``) or "tf32x3" (three TF32 tensor-core products per product:
 a = a_hi + a_lo with a_hi, a_lo TF32 holds a to 22 of float32's 24 bits, and a·b ≈ a_hi·b_hi +
-a_hi·b_lo + a_lo·b_hi drops terms below 2⁻²¹·|a·b|, a few float32 rounding errors; float32 on a
+a_hi·b_lo + a_lo·b_hi drops terms of about 2⁻²²·|a·b|, a few float32 rounding errors; float32 on a
 GPU only). Measured on an H100, both train the packed form's weights to 1.1–1.3e-7 relative after
 240–480 Adam steps, and "tf32x3" is four times faster (``benchmarks.sstep --kernel-dot``)."""
 
 
 @functools.lru_cache(maxsize=None)
 def _call(cfg: GMRConfig, scfg: SStepConfig, dX: int, dU: int, steps: int, dtype, interpret: bool,
-          num_warps: int, dot: str = "ieee"):
+          num_warps: int, dot: str):
     """The pallas_call of one configuration and shape (cached)."""
     lay = layout(cfg, dX, dU, scfg.batch_size)
     n = lay.size
