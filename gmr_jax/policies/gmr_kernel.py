@@ -13,10 +13,11 @@ products on the SM's FMA units ("ieee") the kernel takes about 550 µs per Adam 
 Compute: 32 registers and an 8.6 KB stack per thread, the warps waiting on local memory). With
 three TF32 tensor-core products per product ("tf32x3", ``DOT``, the default) it takes 127–133 µs,
 against the packed form's 112–122 µs, with 255 registers and a 3.8 KB stack per thread and 0.9
-instructions issued per cycle (Nsight Compute). Compiled off the device (the same Triton IR,
-Triton 3.9 and ptxas for sm_90a), a step is about 23 000 instructions per warp, among them 688
-barriers and 1 600 spill loads and stores; the per-row products ``rowwise`` and ``left`` are the
-costliest lines. It is therefore opt-in (``impl="kernel"``).
+instructions issued per cycle (Nsight Compute). Compiled off the device
+(``python -m benchmarks.kernel_sass``), a step is about 23 600 instructions per warp, among them
+667 barriers and 2 300 spill loads and stores; Adam's update of the padded θ, the translation
+network's backward pass and the per-row products ``rowwise`` and ``left`` are the costliest
+lines. It is therefore opt-in (``impl="kernel"``).
 
 It computes the S-step's packed form (``gmr_jax.sstep``, ``impl="packed"``) with the same
 minibatches, noise and Adam steps; the sums run in another order, so the two agree to round-off
