@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from benchmarks import trace
 from experiments import cli
-from gmr_jax import config, mdgps, policies, tasks
+from gmr_jax import config, mdgps, policies, sim, tasks
 
 
 def _abstract(tree):
@@ -62,7 +62,9 @@ def profile(fn, *args, trace_dir: str | None = None) -> dict:
 
 
 def stage_programs(cfg: config.Config):
-    """[(name, fn, abstract args)] of the stages of one iteration, in their order."""
+    """[(name, fn, abstract args)]: one control step of the plant (and, with MJX, the forward
+    kinematics of one of its physics substeps), then the stages of one iteration in their order,
+    the iteration and ``train``."""
     key = jax.random.PRNGKey(0)
     state = jax.eval_shape(lambda k: mdgps.init(cfg, k), key)
     x0 = tasks.initial_states(cfg.task, state.eta.dtype)
@@ -71,7 +73,16 @@ def stage_programs(cfg: config.Config):
     samples = jax.eval_shape(lambda s, kk, f: mdgps.sample_stage(cfg, s, x0, kk, f), state, k, first)
     cost, _ = jax.eval_shape(lambda sm: mdgps.cost_stage(cfg, sm), samples)
     _, dyn = jax.eval_shape(lambda p, sm, kk: mdgps.dynamics_stage(cfg, p, sm, kk), state.dyn_prior, samples, k)
-    progs = [
+    plant = sim.make_sim(cfg.sim)
+    x, u = jax.ShapeDtypeStruct((plant.dX,), x0.dtype), jax.ShapeDtypeStruct((plant.dU,), x0.dtype)
+    progs = [("simulator step (one control step)", lambda xx, uu: sim.step(plant, xx, uu), (x, u))]
+    if plant.backend == "mjx":
+        from mujoco.mjx._src import smooth  # MJX's forward kinematics, one of the step's parts
+
+        mx, d0 = plant.mjx_model_and_data()
+        progs.append(("MJX kinematics (one physics substep)", lambda d: smooth.kinematics(mx, d),
+                      (_abstract(d0),)))
+    progs += [
         ("sample", lambda s, kk, f: mdgps.sample_stage(cfg, s, x0, kk, f), (state, k, first)),
         ("cost", lambda sm: mdgps.cost_stage(cfg, sm), (samples,)),
         ("dynamics", lambda p, sm, kk: mdgps.dynamics_stage(cfg, p, sm, kk), (state.dyn_prior, samples, k)),
