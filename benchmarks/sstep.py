@@ -174,9 +174,11 @@ def parse_args(argv=None):
                    "(trace written under DIR) and report its kernels per Adam step, their busy time and "
                    "the device's idle share (GPU only; benchmarks.trace)")
     args = p.parse_args(argv)
-    bad = [e for e in args.adam_entries.split(",") if e not in config.SSTEP_ADAM_ENTRIES]
-    if bad:
-        p.error(f"--adam-entries: {', '.join(bad)} not among {', '.join(config.SSTEP_ADAM_ENTRIES)}")
+    for flag, value, allowed in (("--adam-entries", args.adam_entries, config.SSTEP_ADAM_ENTRIES),
+                                 ("--kernel-dot", args.kernel_dot, gmr_kernel.DOTS)):
+        bad = [v for v in value.split(",") if v not in allowed]
+        if bad:
+            p.error(f"{flag}: {', '.join(bad)} not among {', '.join(allowed)}")
     return args
 
 
