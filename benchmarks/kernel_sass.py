@@ -181,6 +181,7 @@ def main(argv=None) -> int:
     ir, files = encode_files(triton_ir(args.scenario, args.num_warps, args.kernel_dot, args.epochs))
     with (contextlib.nullcontext(args.keep) if args.keep else tempfile.TemporaryDirectory()) as workdir:
         os.makedirs(workdir, exist_ok=True)
+        print(f"compiling the kernel's Triton IR ({len(ir) // 1000} kB) for sm_90a (a minute or two) ...", flush=True)
         result = compile_kernel(ir, args.num_warps, workdir)
         if args.keep:
             with open(os.path.join(workdir, "kernel.sass"), "w") as f:
