@@ -1,8 +1,10 @@
 """Pictures of trained policies: ``python -m experiments.video OUT [RUN …] [--video]``.
 
-Restores each run's newest checkpoint from a study's output folder (default: every run folder
-in it that trains a policy), executes one seed's policy without noise from the training
-conditions and from a few of the robustness test's random states, and writes
+Takes one seed's noiseless policy rollouts from the training conditions and from a few of the
+robustness test's random states in each run folder of a study's output folder (default: every
+run folder in it that trains a policy): the rollouts the run kept after training
+(``gmr_jax.runner.ROLLOUTS_FILE``, the first ``PICTURE_SEEDS`` seeds), or else executed from
+the run's newest checkpoint. Writes
 
 - ``frames.png``: a still-frame grid, one row per rollout (six frames from 0 to 4 s);
 - with ``--video``: one MP4 per rollout, ``videos/<run>_seed<k>_<start>.mp4`` (20 frames per
@@ -15,13 +17,14 @@ cannot render (no EGL or OSMesa), it says so in one line and writes nothing.
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 import sys
 
 import jax
 import numpy as np
 
-from gmr_jax import evaluate, policies, render, runner, tasks
+from gmr_jax import config, evaluate, policies, render, runner, tasks
 
 
 def policy_runs(out: pathlib.Path) -> list[str]:
@@ -31,18 +34,39 @@ def policy_runs(out: pathlib.Path) -> list[str]:
                   and p.name.rsplit("_", 1)[-1] != "lqr")
 
 
+def _kept_rollouts(run_dir: pathlib.Path, seed_index: int, random_states: int):
+    """(configuration, seed, states [M + random_states, T, dX]) from the rollouts the run kept
+    (``runner.ROLLOUTS_FILE``), or None where they do not cover the request."""
+    kept = run_dir / runner.ROLLOUTS_FILE
+    if not kept.is_file() or random_states > runner.PICTURE_RANDOM_STATES:
+        return None
+    with np.load(kept) as f:
+        if seed_index >= f["seeds"].shape[0]:
+            return None
+        X = np.concatenate([f["training"][seed_index], f["random"][seed_index, :random_states]])
+        seed = int(f["seeds"][seed_index])
+    meta = json.loads((run_dir / "config.json").read_text())
+    return config.from_dict(meta["config"]), seed, X
+
+
 def rollouts(run_dir: pathlib.Path, seed_index: int = 0, random_states: int = 3):
     """[(label, states [T, dX])] of one seed's policy from the training conditions and the first
-    ``random_states`` robustness states, and the run's configuration."""
-    cfg, seeds, state = runner.restore_run(run_dir)
-    params = jax.tree_util.tree_map(lambda a: a[seed_index], state.policy.params)
-    task = tasks.of(cfg)
-    conds = task.scenarios[cfg.task.scenario]
-    x0 = np.concatenate([np.asarray(tasks.initial_states(cfg.task)),
-                         np.asarray(evaluate.robustness_states(cfg))[:random_states]])
-    X = np.asarray(evaluate.execute_policy(cfg, params, jax.numpy.asarray(x0)).X)
+    ``random_states`` robustness states, and the run's configuration and seed: the rollouts the
+    run kept where they cover the request, else executed here from the newest checkpoint."""
+    run_dir = pathlib.Path(run_dir)
+    kept = _kept_rollouts(run_dir, seed_index, random_states)
+    if kept is not None:
+        cfg, seed, X = kept
+    else:
+        cfg, seeds, state = runner.restore_run(run_dir)
+        params = jax.tree_util.tree_map(lambda a: a[seed_index], state.policy.params)
+        x0 = np.concatenate([np.asarray(tasks.initial_states(cfg.task)),
+                             np.asarray(evaluate.robustness_states(cfg))[:random_states]])
+        X = np.asarray(evaluate.execute_policy(cfg, params, jax.numpy.asarray(x0)).X)
+        seed = seeds[seed_index]
+    conds = tasks.of(cfg).scenarios[cfg.task.scenario]
     labels = [f"from {c}" for c in conds] + [f"random state {i}" for i in range(random_states)]
-    return cfg, seeds[seed_index], list(zip(labels, X))
+    return cfg, seed, list(zip(labels, X))
 
 
 def write(out: pathlib.Path, runs: list[str], seed_index: int = 0, random_states: int = 3,

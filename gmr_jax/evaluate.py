@@ -9,6 +9,7 @@ rate against the distance of the initial state from the training initial states.
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import jax
@@ -180,6 +181,27 @@ def summarize_robustness(cfg: Config, x0: jax.Array, out: Trajectories) -> Robus
                       distance=distance, ee=out.ee, X=out.X, extra=extra)
 
 
+def sweep_states(cfg: Config, radii=None, per_radius: int | None = None, seed: int = ROBUSTNESS_KEY,
+                 dtype=None) -> jax.Array:
+    """The disturbance sweep's initial states [R, M·per_radius, dX] (defaults: the task's radii
+    and states per radius, drawn from a fixed key)."""
+    task = tasks.of(cfg)
+    radii = task.sweep_radii if radii is None else radii
+    per_radius = task.sweep_per_radius if per_radius is None else per_radius
+    return task.disturbed_states(cfg, radii, per_radius, seed + 1, dtype or jnp.result_type(float))
+
+
+def sweep_rates(cfg: Config, x0: jax.Array, out: Trajectories):
+    """The disturbance sweep's result from executed rollouts: x0 [R, n, dX] from
+    :func:`sweep_states` and their Trajectories [R·n, T, ...]. Returns (success rate [R] at the
+    headline threshold, at the loose threshold, mse [R, n])."""
+    rob = summarize_robustness(cfg, x0.reshape(-1, x0.shape[-1]), out)
+    mse = rob.mse.reshape(x0.shape[:2])
+    ok = rob.success.reshape(mse.shape)
+    ok_loose = rob.success_loose.reshape(mse.shape)
+    return jnp.mean(ok, axis=1), jnp.mean(ok_loose, axis=1), mse
+
+
 def disturbance_sweep(cfg: Config, params, radii=None, per_radius: int | None = None,
                       seed: int = ROBUSTNESS_KEY):
     """Success rate against the size of a disturbance of the training initial states.
@@ -195,13 +217,40 @@ def disturbance_sweep(cfg: Config, params, radii=None, per_radius: int | None = 
       (success rate [R] at the headline threshold, success rate [R] at the loose threshold,
        mse [R, M·per_radius]).
     """
-    task = tasks.of(cfg)
-    radii = task.sweep_radii if radii is None else radii
-    per_radius = task.sweep_per_radius if per_radius is None else per_radius
+    _global_policy(cfg)
     dtype = jax.tree_util.tree_leaves(params)[0].dtype
-    x0 = task.disturbed_states(cfg, radii, per_radius, seed + 1, dtype)  # [R, M·per_radius, dX]
-    rob = robustness(cfg, params, x0.reshape(-1, x0.shape[-1]))
-    mse = rob.mse.reshape(x0.shape[:2])
-    ok = rob.success.reshape(mse.shape)
-    ok_loose = rob.success_loose.reshape(mse.shape)
-    return jnp.mean(ok, axis=1), jnp.mean(ok_loose, axis=1), mse
+    x0 = sweep_states(cfg, radii, per_radius, seed, dtype)
+    return sweep_rates(cfg, x0, execute_policy(cfg, params, x0.reshape(-1, x0.shape[-1])))
+
+
+class Evaluation(NamedTuple):
+    """The evaluation of a trained policy after training (:func:`evaluation`).
+
+    Attributes:
+      robustness: Robustness from the fixed random states.
+      sweep: (success rate [R], loose success rate [R], mse [R, n]) of the disturbance sweep.
+      training: Trajectories [M, T, ...] of the noiseless policy from the training initial
+        states (e.g. for pictures).
+    """
+
+    robustness: Robustness
+    sweep: tuple
+    training: Trajectories
+
+
+def evaluation(cfg: Config, params) -> Evaluation:
+    """The robustness test, the disturbance sweep and the noiseless rollouts from the training
+    states, executed as one batch of rollouts: one rollout in the compiled program instead of
+    one per part (equal to :func:`robustness` and :func:`disturbance_sweep` up to the rounding
+    of the policy's batched products)."""
+    _global_policy(cfg)
+    dtype = jax.tree_util.tree_leaves(params)[0].dtype
+    parts = [robustness_states(cfg, dtype=dtype), sweep_states(cfg, dtype=dtype),
+             tasks.initial_states(cfg.task, dtype)]
+    flat = [parts[0], parts[1].reshape(-1, parts[1].shape[-1]), parts[2]]
+    out = execute_policy(cfg, params, jnp.concatenate(flat))
+    ends = list(itertools.accumulate(x.shape[0] for x in flat))
+    rob_out, sweep_out, train_out = (jax.tree_util.tree_map(lambda a, lo=lo, hi=hi: a[lo:hi], out)
+                                     for lo, hi in zip([0] + ends[:-1], ends))
+    return Evaluation(robustness=summarize_robustness(cfg, parts[0], rob_out),
+                      sweep=sweep_rates(cfg, parts[1], sweep_out), training=train_out)

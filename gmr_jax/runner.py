@@ -155,8 +155,30 @@ class Scheduler:
 
 
 def _robustness(cfg: config.Config, params):
-    """The task's fixed random states and its disturbance sweep: one program."""
-    return evaluate.robustness(cfg, params), evaluate.disturbance_sweep(cfg, params)[:2]
+    """The task's fixed random states, its disturbance sweep and the rollouts from the training
+    states: one program with one batch of rollouts."""
+    ev = evaluate.evaluation(cfg, params)
+    return ev.robustness, ev.sweep[:2], ev.training.X
+
+
+# Seeds whose policy rollouts ``run`` keeps for pictures (``ROLLOUTS_FILE``): the first ones.
+PICTURE_SEEDS = 16
+PICTURE_RANDOM_STATES = 3
+ROLLOUTS_FILE = "policy_rollouts.npz"
+
+
+def write_policy_rollouts(run_dir, seeds, training_X, random_X) -> pathlib.Path:
+    """Keep the trained policies' noiseless rollouts for pictures in ``run_dir/ROLLOUTS_FILE``
+    (written atomically): the first ``PICTURE_SEEDS`` seeds' states [S, M, T, dX] from the
+    training states and [S, PICTURE_RANDOM_STATES, T, dX] from the first robustness states.
+    ``experiments.video`` renders them without recomputing anything."""
+    n = min(len(seeds), PICTURE_SEEDS)
+    path = pathlib.Path(run_dir) / ROLLOUTS_FILE
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, seeds=np.asarray(seeds[:n]), training=np.asarray(training_X[:n]),
+             random=np.asarray(random_X[:n, :PICTURE_RANDOM_STATES]))
+    tmp.replace(path)
+    return path
 
 
 def _program(kind: str, mesh):
@@ -253,7 +275,8 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
 def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, program=None,
                         layout: _Layout | None = None) -> dict:
     """Robustness of every seed's policy (leading seed axis of ``params``): the task's fixed
-    random states and its disturbance sweep. ``program``: the compiled robustness program, or a
+    random states and its disturbance sweep (keys ``robustness`` and ``sweep``), and the
+    policies' rollouts from the training states (``training_X`` [S, M, T, dX]). ``program``: the compiled robustness program, or a
     future of it (default: compiled here); ``layout``: how ``params`` lie on the devices
     (default: one device, unpadded)."""
     timer = Timer() if timer is None else timer
@@ -264,10 +287,11 @@ def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, 
             program = program.result()
     with timer("robustness_run_s"):
         out = program(params)
-        rob, (rate, rate_loose) = _host(out if layout is None else layout.real(out))
+        rob, (rate, rate_loose), training_X = _host(out if layout is None else layout.real(out))
     radii = [float(r) for r in tasks.of(cfg).sweep_radii]
     return {"robustness": rob._asdict(), "sweep": {"radii": radii, "success_rate": np.asarray(rate),
-                                                     "success_rate_loose": np.asarray(rate_loose)}}
+                                                     "success_rate_loose": np.asarray(rate_loose)},
+            "training_X": training_X}
 
 
 def _set_aside(ckpt_dir: pathlib.Path, step: int) -> pathlib.Path:
@@ -328,7 +352,8 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     Args:
       cfg: the run's configuration.
       seeds: integer seeds (PRNG keys ``jax.random.PRNGKey(seed)``), trained side by side.
-      run_dir: the run's folder (``config.json`` and ``checkpoints/`` are written there).
+      run_dir: the run's folder (``config.json``, ``checkpoints/`` and, once a policy's run is
+        finished, its rollouts for pictures, :func:`write_policy_rollouts`, are written there).
       resume: continue from the newest intact checkpoint (or start if there is none); without
         it, a folder that holds checkpoints raises :class:`FolderTaken`.
       stop_after: end after this many iterations, as an interruption would.
@@ -369,6 +394,8 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
     state, history, step, robustness = _prepare(cfg, seeds, layout, k_init, it_keys, ckpt_dir, resume, stop,
                                                 timer, scheduler, ticket, report)
+    if step is not None:  # kept rollouts of an earlier, shorter run would outlive its policy
+        (run_dir / ROLLOUTS_FILE).unlink(missing_ok=True)
     state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout,
                                               timer, scheduler, progress_fn, label, t0)
     timer["iterations_s"] = float(np.sum(iteration_s))
@@ -376,6 +403,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     result = {"history": stacked, "iteration_s": iteration_s}
     if robustness is not None and len(history) == cfg.iterations:
         result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
+        write_policy_rollouts(run_dir, list(seeds), result.pop("training_X"), result["robustness"]["X"])
         if stability:
             with timer("stability_s"):
                 params = jax.device_get(layout.real(state.policy.params))

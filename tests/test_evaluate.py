@@ -152,3 +152,24 @@ def test_random_angles_around_target_are_the_same_configurations():
     d = b[:, [0, 3, 4, 5]] - target[[0, 3, 4, 5]]
     assert np.all((d >= -np.pi) & (d < np.pi))
     np.testing.assert_array_equal(b[:, [1, 2]], a[:, [1, 2]])
+
+
+def test_evaluation_is_robustness_sweep_and_training_rollouts_in_one_batch():
+    """``evaluation`` executes the robustness states, the sweep's states and the training states
+    as one batch: each part equals its own evaluation up to the rounding of the policy's batched
+    products (tolerance measured from the separate evaluations)."""
+    params = policies.for_config(CFG).init(jax.random.PRNGKey(0), 12, 6)
+    ev = jax.jit(evaluate.evaluation, static_argnums=0)(CFG, params)
+
+    def separate(p):
+        rob = evaluate.robustness(CFG, p)
+        _, _, sweep_mse = evaluate.disturbance_sweep(CFG, p)
+        return rob.mse, rob.X, sweep_mse, evaluate.execute_policy(CFG, p, tasks.initial_states(CFG.task)).X
+
+    ref, tol = measured_tol(jax.jit(separate), (params,), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-8)
+    assert_trees_within((ev.robustness.mse, ev.robustness.X, ev.sweep[2], ev.training.X), ref, tol)
+    np.testing.assert_array_equal(ev.robustness.x0, evaluate.robustness_states(CFG))
+    # the rates are the sweep's successes per radius
+    np.testing.assert_array_equal(ev.sweep[0], np.mean(np.asarray(ev.sweep[2]) < CFG.task.success_threshold, axis=1))
+    assert ev.training.X.shape == (2, CFG.task.T, 12)

@@ -42,6 +42,32 @@ def test_progress_reaches_the_callback_after_every_iteration(whole):
     assert (root / "whole" / "config.json").is_file()
 
 
+def test_finished_run_keeps_its_policy_rollouts_for_pictures(whole):
+    """The kept rollouts are the robustness program's own (the random states' exactly, the
+    training states' starting at those states), and ``experiments.video`` takes them instead of
+    executing the policy again (which agrees up to the rounding of another batch)."""
+    from experiments import video
+    from tolerances import SAFETY, assert_tolerances_small, assert_trees_within, measured_tol
+
+    from gmr_jax import evaluate, policies, tasks
+
+    cfg, root, result, _ = whole
+    with np.load(root / "whole" / runner.ROLLOUTS_FILE) as f:
+        kept = {k: f[k] for k in f.files}
+    np.testing.assert_array_equal(kept["seeds"], SEEDS)
+    np.testing.assert_array_equal(kept["random"], result["robustness"]["X"][:, :runner.PICTURE_RANDOM_STATES])
+    assert kept["training"].shape == (2, 1, cfg.task.T, 12)
+    np.testing.assert_array_equal(kept["training"][:, :, 0], np.broadcast_to(tasks.initial_states(cfg.task), (2, 1, 12)))
+    got_cfg, seed, rows = video.rollouts(root / "whole", seed_index=1, random_states=2)
+    assert got_cfg == cfg and seed == 1 and [label for label, _ in rows] == ["from A", "random state 0", "random state 1"]
+    params = jax.tree_util.tree_map(lambda a: a[1], _final_state(cfg, root / "whole").policy.params)
+    x0 = np.concatenate([tasks.initial_states(cfg.task), evaluate.robustness_states(cfg)[:2]])
+    again = jax.jit(lambda p, x: evaluate.execute(cfg, policies.mean_fn(policies.for_config(cfg), p), x).X)
+    ref, tol = measured_tol(again, (params, x0), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-8)
+    assert_trees_within(np.stack([X for _, X in rows]), ref, tol)
+
+
 def test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one(whole, scheduler):
     """Stopped after 1 of 2 iterations, resumed to 2, then extended to 3: the same programs on
     the same device from bit-identical checkpoints, so the result is bit-identical too."""
