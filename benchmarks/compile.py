@@ -28,7 +28,7 @@ import jax.numpy as jnp
 
 from benchmarks import trace
 from experiments import cli
-from gmr_jax import config, mdgps, policies, sim, tasks
+from gmr_jax import config, evaluate, mdgps, policies, sim, tasks
 
 
 def _abstract(tree):
@@ -64,7 +64,9 @@ def profile(fn, *args, trace_dir: str | None = None) -> dict:
 def stage_programs(cfg: config.Config):
     """[(name, fn, abstract args)]: one control step of the plant (and, with MJX, the forward
     kinematics of one of its physics substeps), then the stages of one iteration in their order,
-    the iteration and ``train``."""
+    the iteration and ``train``, and for a policy the evaluation after training
+    (``evaluate.evaluation``, one batch of rollouts) beside the same rollouts as two batches
+    (``evaluate.robustness`` and ``evaluate.disturbance_sweep``)."""
     key = jax.random.PRNGKey(0)
     state = jax.eval_shape(lambda k: mdgps.init(cfg, k), key)
     x0 = tasks.initial_states(cfg.task, state.eta.dtype)
@@ -103,6 +105,11 @@ def stage_programs(cfg: config.Config):
     progs.append(("learning curve", lambda t, p: mdgps.learning_curve(cfg, t, p, x0), (traj, state.policy)))
     progs.append(("iteration", lambda s, kk, f: mdgps.iteration(cfg, s, kk, f), (state, k, first)))
     progs.append(("train", lambda kk: mdgps.train(cfg, kk), (k,)))
+    if state.policy is not None:  # the program that evaluates a trained policy after training
+        params = state.policy.params
+        progs.append(("evaluation (one batch of rollouts)", lambda pp: evaluate.evaluation(cfg, pp), (params,)))
+        progs.append(("evaluation as two batches (robustness, sweep)",
+                      lambda pp: (evaluate.robustness(cfg, pp), evaluate.disturbance_sweep(cfg, pp)), (params,)))
     return progs
 
 
