@@ -17,6 +17,7 @@ plain vmapped program.
 from __future__ import annotations
 
 import functools
+import os
 from typing import Callable
 
 import jax
@@ -82,17 +83,40 @@ def over_seeds(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
                          out_specs=seeds, check_vma=False)
 
 
+# XLA's CPU code generator without its newer "fusion emitters": the same arithmetic to round-off
+# (tests/test_sharding.py), a faster S-step and iteration, and a faster compilation
+# (benchmarks/RESULTS.md, eleventh session).
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+@functools.lru_cache(maxsize=None)
+def compiler_options() -> dict:
+    """XLA options for compiling the programs of :func:`seed_program` on this backend:
+    ``CPU_COMPILER_OPTIONS`` on a CPU, none elsewhere, and none where ``XLA_FLAGS`` names one of
+    them (the user's choice wins) or this XLA does not know them (an unknown option in
+    ``XLA_FLAGS`` would abort the process; as a compile option it is only refused)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if jax.default_backend() != "cpu" or any(name in flags for name in CPU_COMPILER_OPTIONS):
+        return {}
+    try:
+        jax.jit(lambda x: x + 1).lower(jnp.zeros((), jnp.float32)).compile(compiler_options=CPU_COMPILER_OPTIONS)
+    except jax.errors.JaxRuntimeError:
+        return {}
+    return dict(CPU_COMPILER_OPTIONS)
+
+
 @functools.lru_cache(maxsize=None)
 def seed_program(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
     """``jax.jit`` of ``fn(cfg, *args)`` vmapped over the seed axis of the ``batched`` arguments
-    and split over ``mesh``; ``cfg`` (the first argument) is static. Cached per (fn, mesh,
-    batched), so every caller shares one jitted function and its compilation cache."""
+    and split over ``mesh``; ``cfg`` (the first argument) is static; compiled with
+    :func:`compiler_options`. Cached per (fn, mesh, batched), so every caller shares one jitted
+    function and its compilation cache."""
     in_axes = tuple(0 if b else None for b in batched)
 
     def program(cfg, *args):
         vmapped = jax.vmap(functools.partial(fn, cfg), in_axes=in_axes)
         return over_seeds(vmapped, mesh, batched)(*args)
-    return jax.jit(program, static_argnums=0)
+    return jax.jit(program, static_argnums=0, compiler_options=compiler_options())
 
 
 def train(cfg, keys: jax.Array, mesh: Mesh | None = None):

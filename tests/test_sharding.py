@@ -96,3 +96,36 @@ def test_library_train_over_a_mesh(cfg, four_devices, tolerances):
 def test_mesh_of_too_many_devices_is_refused():
     with pytest.raises(ValueError, match="devices=99: must be between 1 and the"):
         sharding.seed_mesh(99)
+
+
+def test_cpu_compiler_options_change_only_round_off(monkeypatch):
+    """The programs' CPU code-generator option (``sharding.CPU_COMPILER_OPTIONS``) gives the GMR
+    S-step's loss and gradient of XLA's default code generator up to round-off (tolerance
+    measured by rerunning the default on inputs perturbed by ε relative), and XLA_FLAGS naming
+    the option leaves the choice to the user."""
+    from gmr_jax import config, policies
+    from benchmarks import sstep as sstep_bench
+
+    if sharding.compiler_options() != sharding.CPU_COMPILER_OPTIONS:
+        pytest.skip("not a CPU backend, or this XLA does not know the option")
+    cfg = config.reach("AB", "gmr")
+    pol = policies.for_config(cfg)
+    params = pol.init(jax.random.PRNGKey(0), 12, 6)
+    batch = jax.tree_util.tree_map(lambda a: a[:20], sstep_bench.synthetic_data(cfg, jax.random.PRNGKey(3), jnp.float64))
+
+    def loss_and_grad(net, b):
+        return jax.value_and_grad(lambda n: pol.loss(params._replace(net=n), b, jax.random.PRNGKey(1))[0])(net)
+
+    with jax.default_matmul_precision(mdgps.MATMUL_PRECISION):
+        ref, tol = measured_tol(jax.jit(loss_and_grad), (params.net, batch), SAFETY)
+        got = jax.jit(loss_and_grad).lower(params.net, batch).compile(
+            compiler_options=sharding.CPU_COMPILER_OPTIONS)(params.net, batch)
+    assert_trees_within(got, ref, tol)
+
+    sharding.compiler_options.cache_clear()
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    try:
+        assert sharding.compiler_options() == {}
+    finally:
+        monkeypatch.undo()
+        sharding.compiler_options.cache_clear()
