@@ -267,7 +267,7 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     if not isinstance(program, jax.stages.Lowered):
         return program
     with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
-        compiled = program.compile()
+        compiled = program.compile(compiler_options=sharding.compiler_options() or None)
     scheduler.programs[(kind, program_config(cfg), num_seeds)] = compiled
     return compiled
 
@@ -426,7 +426,9 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
 
     def make_initial():
         with timer("init_s"):
-            return jax.block_until_ready(init(k_init))
+            compiled = init.func.lower(program_config(cfg), k_init).compile(
+                compiler_options=sharding.compiler_options() or None)
+            return jax.block_until_ready(compiled(k_init))
     state_future = scheduler.pool.submit(make_initial)
     num = k_init.shape[0]
     step = robustness = None

@@ -91,7 +91,8 @@ CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 @functools.lru_cache(maxsize=None)
 def compiler_options() -> dict:
-    """XLA options for compiling the programs of :func:`seed_program` on this backend:
+    """XLA options for compiling the programs of :func:`seed_program` on this backend (the runner
+    passes them to ``Lowered.compile``; a ``jax.jit`` option would refuse nested tracing):
     ``CPU_COMPILER_OPTIONS`` on a CPU, none elsewhere, and none where ``XLA_FLAGS`` names one of
     them (the user's choice wins) or this XLA does not know them (an unknown option in
     ``XLA_FLAGS`` would abort the process; as a compile option it is only refused)."""
@@ -108,15 +109,14 @@ def compiler_options() -> dict:
 @functools.lru_cache(maxsize=None)
 def seed_program(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
     """``jax.jit`` of ``fn(cfg, *args)`` vmapped over the seed axis of the ``batched`` arguments
-    and split over ``mesh``; ``cfg`` (the first argument) is static; compiled with
-    :func:`compiler_options`. Cached per (fn, mesh, batched), so every caller shares one jitted
-    function and its compilation cache."""
+    and split over ``mesh``; ``cfg`` (the first argument) is static. Cached per (fn, mesh,
+    batched), so every caller shares one jitted function and its compilation cache."""
     in_axes = tuple(0 if b else None for b in batched)
 
     def program(cfg, *args):
         vmapped = jax.vmap(functools.partial(fn, cfg), in_axes=in_axes)
         return over_seeds(vmapped, mesh, batched)(*args)
-    return jax.jit(program, static_argnums=0, compiler_options=compiler_options())
+    return jax.jit(program, static_argnums=0)
 
 
 def train(cfg, keys: jax.Array, mesh: Mesh | None = None):
