@@ -276,9 +276,9 @@ def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, 
                         layout: _Layout | None = None) -> dict:
     """Robustness of every seed's policy (leading seed axis of ``params``): the task's fixed
     random states and its disturbance sweep (keys ``robustness`` and ``sweep``), and the
-    policies' rollouts from the training states (``training_X`` [S, M, T, dX]). ``program``: the compiled robustness program, or a
-    future of it (default: compiled here); ``layout``: how ``params`` lie on the devices
-    (default: one device, unpadded)."""
+    policies' rollouts from the training states (``training_X`` [S, M, T, dX]). ``program``:
+    the compiled robustness program, or a future of it (default: compiled here); ``layout``:
+    how ``params`` lie on the devices (default: one device, unpadded)."""
     timer = Timer() if timer is None else timer
     if program is None:
         program = functools.partial(_program("robustness", sharding.seed_mesh(1)), program_config(cfg))
