@@ -145,6 +145,26 @@ def resolve_backend(args, task: tasks.Task) -> str:
     return "mjx" if args.seeds * conditions * args.samples >= task.mjx_min_rollouts else "mujoco"
 
 
+# Seeds per GPU from which the CLI's S-steps let Adam carry only the trained weights
+# (``SStepConfig.adam_entries = "trained"``): on an H100 the GMR and MLP S-steps are 21 % and 10 %
+# faster with 256 seeds, and between 5 % faster and 11 % slower with 16 and 64 seeds
+# (benchmarks/RESULTS.md, tenth and eleventh sessions).
+TRAINED_ENTRIES_MIN_SEEDS = 256
+
+
+def resolve_adam_entries(args) -> dict:
+    """The S-step's ``adam_entries`` for the CLI's runs: ``{"sstep__adam_entries": "trained"}`` on
+    a GPU with at least ``TRAINED_ENTRIES_MIN_SEEDS`` seeds per device, else {} (the
+    configuration's default); a ``--set sstep__adam_entries=…`` wins."""
+    import jax
+
+    if "sstep__adam_entries" in args.overrides or jax.default_backend() != "gpu":
+        return {}
+    devices = min(args.devices or len(jax.local_devices()), len(jax.local_devices()))
+    per_device = -(-args.seeds // max(devices, 1))
+    return {"sstep__adam_entries": "trained"} if per_device >= TRAINED_ENTRIES_MIN_SEEDS else {}
+
+
 def parse_args(task_name: str, argv=None, description: str | None = None) -> argparse.Namespace:
     """The arguments, with ``args.configs``: {(scenario, algorithm): Config}. Every setting is
     validated by the configuration itself; a bad one ends argparse's way (usage, exit 2)."""
@@ -162,9 +182,10 @@ def parse_args(task_name: str, argv=None, description: str | None = None) -> arg
         p.error(f"--set: use {', '.join(clash)} for these settings")
     try:
         backend = resolve_backend(args, task)
+        overrides = {**resolve_adam_entries(args), **args.overrides}
         args.configs = {(s, a): config.make(task.name, s, a, iterations=args.iterations,
                                             num_samples=args.samples, task__T=args.T,
-                                            sim__backend=backend, **args.overrides)
+                                            sim__backend=backend, **overrides)
                         for s in args.scenarios for a in args.algorithms}
     except (ValueError, TypeError) as err:
         p.error(str(err))

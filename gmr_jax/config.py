@@ -359,7 +359,7 @@ class SStepConfig:
         a gather each step: about a third of the memory traffic of Adam's update). On an H100
         "trained" makes the S-step 21 % (GMR) and 10 % (MLP) faster with 256 seeds side by side
         and 2–13 % slower with one seed (benchmarks/RESULTS.md), so "all" is the default and
-        runs of many seeds should set "trained".
+        runs of many seeds should set "trained" (the CLI does from 256 seeds per GPU).
     """
 
     lr: float = 1e-3

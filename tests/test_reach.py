@@ -39,6 +39,25 @@ def test_auto_backend_on_a_cpu_is_c_mujoco():
     assert [c.sim.backend for c in args.configs.values()] == ["mjx"]
 
 
+def test_adam_on_the_trained_entries_from_256_seeds_per_gpu(monkeypatch):
+    """On a GPU the CLI's S-steps carry only the trained weights from TRAINED_ENTRIES_MIN_SEEDS
+    seeds per device on (counted over --devices), unless --set chooses; elsewhere the default."""
+    import jax
+
+    def entries(argv):
+        return {c.sstep.adam_entries for c in cli.parse_args("reach", argv + ["--backend", "mujoco"]).configs.values()}
+
+    assert entries(["--seeds", "1024"]) == {"all"}  # the test machine's CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "local_devices", lambda: ["gpu0", "gpu1"])
+    n = cli.TRAINED_ENTRIES_MIN_SEEDS
+    assert entries(["--seeds", str(n), "--devices", "1"]) == {"trained"}
+    assert entries(["--seeds", str(n)]) == {"all"}  # both devices: n/2 per device
+    assert entries(["--seeds", str(2 * n - 1)]) == {"trained"}  # ⌈(2n−1)/2⌉ = n per device
+    assert entries(["--seeds", str(n - 1), "--devices", "1"]) == {"all"}
+    assert entries(["--seeds", str(n), "--devices", "1", "--set", "sstep__adam_entries='all'"]) == {"all"}
+
+
 def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
     """Without --resume, an --out that holds a run's checkpoints is refused before anything is
     written: the earlier run's config.json and checkpoints stay as they were."""
