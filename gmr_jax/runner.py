@@ -422,11 +422,12 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     restores its checkpoint (validated before anything compiles) and traces its programs from
     the state's shapes; the step program then compiles in a compile slot, the robustness program
     in the background while the run trains."""
-    init = functools.partial(_program("init", layout.mesh), program_config(cfg))
+    init_program = _program("init", layout.mesh)
+    init = functools.partial(init_program, program_config(cfg))
 
     def make_initial():
         with timer("init_s"):
-            compiled = init.func.lower(program_config(cfg), k_init).compile(
+            compiled = init_program.lower(program_config(cfg), k_init).compile(
                 compiler_options=sharding.compiler_options() or None)
             return jax.block_until_ready(compiled(k_init))
     state_future = scheduler.pool.submit(make_initial)
