@@ -17,6 +17,7 @@ empty persistent compilation cache (it sets none).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -28,7 +29,7 @@ import jax.numpy as jnp
 
 from benchmarks import trace
 from experiments import cli
-from gmr_jax import config, evaluate, mdgps, policies, sim, tasks
+from gmr_jax import config, evaluate, mdgps, policies, sharding, sim, tasks
 
 
 def _abstract(tree):
@@ -64,7 +65,8 @@ def profile(fn, *args, trace_dir: str | None = None) -> dict:
 def stage_programs(cfg: config.Config):
     """[(name, fn, abstract args)]: one control step of the plant (and, with MJX, the forward
     kinematics of one of its physics substeps), then the stages of one iteration in their order,
-    the iteration and ``train``, and for a policy the evaluation after training
+    the iteration (also as the runner's program for one seed, and vmapped over one seed) and
+    ``train``, and for a policy the evaluation after training
     (``evaluate.evaluation``, one batch of rollouts) beside the same rollouts as two batches
     (``evaluate.robustness`` and ``evaluate.disturbance_sweep``)."""
     key = jax.random.PRNGKey(0)
@@ -104,6 +106,14 @@ def stage_programs(cfg: config.Config):
                       (state.policy, traj, samples, marginals, k)))
     progs.append(("learning curve", lambda t, p: mdgps.learning_curve(cfg, t, p, x0), (traj, state.policy)))
     progs.append(("iteration", lambda s, kk, f: mdgps.iteration(cfg, s, kk, f), (state, k, first)))
+    # The iteration as the runner compiles it for a run of one seed: its seed program
+    # (sharding.over_seed_axis, the plain iteration on the squeezed seed), beside the same program
+    # vmapped over a seed axis of size one, which the runner compiled before.
+    one = lambda tree: jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct((1, *a.shape), a.dtype), tree)  # noqa: E731
+    step = functools.partial(mdgps.iteration, cfg)
+    progs.append(("iteration, the runner's program for one seed",
+                  sharding.over_seed_axis(step, (True, True, False)), (one(state), one(k), first)))
+    progs.append(("iteration vmapped over one seed", jax.vmap(step, in_axes=(0, 0, None)), (one(state), one(k), first)))
     progs.append(("train", lambda kk: mdgps.train(cfg, kk), (k,)))
     if state.policy is not None:  # the program that evaluates a trained policy after training
         params = state.policy.params

@@ -11,7 +11,7 @@ A seed count that the device count does not divide is padded with copies of the 
 Checkpoints hold host copies of the real seeds only, so they restore onto any device count.
 
 With one device every function here is the identity on the program: results are those of the
-plain vmapped program.
+plain vmapped program (of the plain program for a single seed, :func:`over_seed_axis`).
 """
 
 from __future__ import annotations
@@ -69,7 +69,8 @@ def over_seeds(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
     """``fn`` (already vmapped over a leading seed axis) split over the mesh's devices.
 
     Args:
-      fn: (*args) -> outputs, every output leaf with a leading seed axis.
+      fn: (*args) -> outputs, every output leaf with a leading seed axis (mapped over it, e.g.
+        by :func:`over_seed_axis`; inside, each device's block of seeds).
       mesh: from :func:`seed_mesh`.
       batched: per positional argument, whether it carries the seed axis (True) or is shared by
         all seeds (False, replicated).
@@ -106,16 +107,33 @@ def compiler_options() -> dict:
     return dict(CPU_COMPILER_OPTIONS)
 
 
+def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:
+    """``fn`` mapped over the leading seed axis of the ``batched`` positional arguments; every
+    output leaf gets that axis. A block of one seed runs ``fn`` itself on the squeezed
+    arguments instead of ``jax.vmap``: the same arithmetic up to round-off (XLA may pick other
+    kernels for a batch of one), traced about four times faster and compiled faster, because
+    tracing under ``vmap`` passes every operation through the batching rules and leaves size-one
+    batch dimensions for XLA to remove (benchmarks/RESULTS.md, twelfth session)."""
+    vmapped = jax.vmap(fn, in_axes=tuple(0 if b else None for b in batched))
+
+    def mapped(*args):
+        sizes = {leaf.shape[0] for a, b in zip(args, batched) if b for leaf in jax.tree_util.tree_leaves(a)}
+        if sizes != {1}:
+            return vmapped(*args)
+        squeezed = [jax.tree_util.tree_map(lambda x: x[0], a) if b else a for a, b in zip(args, batched)]
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], fn(*squeezed))
+    return mapped
+
+
 @functools.lru_cache(maxsize=None)
 def seed_program(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
-    """``jax.jit`` of ``fn(cfg, *args)`` vmapped over the seed axis of the ``batched`` arguments
-    and split over ``mesh``; ``cfg`` (the first argument) is static. Cached per (fn, mesh,
-    batched), so every caller shares one jitted function and its compilation cache."""
-    in_axes = tuple(0 if b else None for b in batched)
+    """``jax.jit`` of ``fn(cfg, *args)`` mapped over the seed axis of the ``batched`` arguments
+    (:func:`over_seed_axis`) and split over ``mesh``; ``cfg`` (the first argument) is static.
+    Cached per (fn, mesh, batched), so every caller shares one jitted function and its
+    compilation cache."""
 
     def program(cfg, *args):
-        vmapped = jax.vmap(functools.partial(fn, cfg), in_axes=in_axes)
-        return over_seeds(vmapped, mesh, batched)(*args)
+        return over_seeds(over_seed_axis(functools.partial(fn, cfg), batched), mesh, batched)(*args)
     return jax.jit(program, static_argnums=0)
 
 

@@ -129,3 +129,23 @@ def test_cpu_compiler_options_change_only_round_off(monkeypatch):
     finally:
         monkeypatch.undo()
         sharding.compiler_options.cache_clear()
+
+
+def test_one_seed_runs_the_plain_program_and_more_seeds_the_vmapped_one():
+    """``over_seed_axis``: a block of one seed traces ``fn`` itself on the squeezed arguments (a
+    ``lax.cond`` on a seed's own data stays a conditional, where ``vmap`` turns it into a select of
+    both branches), with the seed axis put back on every output; more seeds are ``jax.vmap``.
+    That the one-seed program computes what the vmapped one does is the sharded-run test above:
+    its four devices each run one seed."""
+    def fn(x, scale):
+        y = jax.lax.cond(x.sum() > 0, lambda v: v * scale, lambda v: -v, x)
+        return {"y": y, "total": y.sum()}
+
+    mapped = sharding.over_seed_axis(fn, (True, False))
+    prims = lambda f, *a: {e.primitive.name for e in jax.make_jaxpr(f)(*a).eqns}  # noqa: E731
+    one, two = jnp.array([[1.0, 3.0]]), jnp.array([[1.0, 3.0], [-2.0, 1.0]])
+    assert "cond" in prims(mapped, one, 2.0) and "cond" not in prims(mapped, two, 2.0)
+    out = mapped(one, 2.0)
+    assert out["y"].shape == (1, 2) and out["total"].shape == (1,)
+    np.testing.assert_array_equal(out["y"], [[2.0, 6.0]])
+    np.testing.assert_array_equal(mapped(two, 2.0)["y"], [[2.0, 6.0], [2.0, -1.0]])
