@@ -111,9 +111,10 @@ def stage_programs(cfg: config.Config):
     # vmapped over a seed axis of size one, which the runner compiled before.
     one = lambda tree: jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct((1, *a.shape), a.dtype), tree)  # noqa: E731
     step = functools.partial(mdgps.iteration, cfg)
-    progs.append(("iteration, the runner's program for one seed",
+    progs.append(("runner's iteration program (one seed)",
                   sharding.over_seed_axis(step, (True, True, False)), (one(state), one(k), first)))
-    progs.append(("iteration vmapped over one seed", jax.vmap(step, in_axes=(0, 0, None)), (one(state), one(k), first)))
+    progs.append(("runner's iteration program before: vmapped over one seed",
+                  jax.vmap(step, in_axes=(0, 0, None)), (one(state), one(k), first)))
     progs.append(("train", lambda kk: mdgps.train(cfg, kk), (k,)))
     if state.policy is not None:  # the program that evaluates a trained policy after training
         params = state.policy.params
