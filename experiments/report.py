@@ -197,7 +197,7 @@ TIMING_PHASES = (("init_s", "init"), ("trace_s", "trace"), ("lower_s", "lower"),
                  ("compile_s", "compile"), ("training_start_s", "first iteration from"),
                  ("iterations_s", "iterations"),
                  ("checkpoint_s", "checkpoints"), ("robustness_trace_s", "robustness trace"),
-                 ("robustness_lower_s", "lower"), ("robustness_compile_s", "compile (beside training)"),
+                 ("robustness_lower_s", "lower"), ("robustness_compile_s", "compile (beside training, in a slot)"),
                  ("robustness_wait_s", "waited for"), ("robustness_run_s", "run"))
 
 

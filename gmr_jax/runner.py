@@ -121,8 +121,11 @@ class Scheduler:
 
     Attributes:
       tracing: :class:`TracingTurns` of the runs.
-      compile_slots: at most ``compile_jobs`` iteration programs compile at once (XLA spreads one
-        compilation over the cores, so many at once mostly slow each other down).
+      compile_slots: at most ``compile_jobs`` programs (iterations, evaluations) compile at once
+        (XLA spreads one compilation over the cores, so many at once mostly slow each other
+        down). Waiters get a slot in the order they asked (``threading.Condition`` is FIFO), so
+        the iteration programs traced first compile before the evaluation programs that runs
+        request when they start training.
       programs: compiled programs per (kind, config, number of seeds): a resumed, extended or
         repeated run of the same configuration reuses its executables.
       mesh: the 1-D device mesh the runs split their seeds over (``devices``: the first n local
@@ -421,7 +424,8 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     The initial state is computed in the background while this run, in its tracing turn,
     restores its checkpoint (validated before anything compiles) and traces its programs from
     the state's shapes; the step program then compiles in a compile slot, the robustness program
-    in the background while the run trains."""
+    in the background while the run trains (in a compile slot too, after the programs already
+    waiting for one)."""
     init_program = _program("init", layout.mesh)
     init = functools.partial(init_program, program_config(cfg))
 
@@ -450,8 +454,10 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     if step is not None:
         step = _compiled("step", cfg, num, step, timer, scheduler, slot=True)
     if robustness is not None:
+        # In a slot: beside training, but after the other runs' iteration programs, which then
+        # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
         robustness = scheduler.pool.submit(_compiled, "robustness", cfg, num, robustness, timer, scheduler,
-                                           slot=False)
+                                           slot=True)
     return (state_future.result() if state is None else state), history, step, robustness
 
 
