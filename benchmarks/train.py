@@ -1,6 +1,7 @@
 """Wall time of whole training runs, many seeds in parallel: ``jax.vmap(gmr_jax.train)``.
 
-For each seed count S, one jitted ``jax.vmap(mdgps.train, in_axes=(None, 0))`` over S keys,
+For each seed count S, one jitted ``jax.vmap(mdgps.train, in_axes=(None, 0))`` over S keys
+(for one seed per device the plain ``mdgps.train``, ``sharding.over_seed_axis``),
 split over ``--devices`` local devices (``gmr_jax.sharding``; default all), runs the full
 configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples,
 T = 80, 10 iterations). Compile time (lower + compile) and run time (median over repeats, after

@@ -139,7 +139,8 @@ def seed_program(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callabl
 
 def train(cfg, keys: jax.Array, mesh: Mesh | None = None):
     """``jax.vmap(mdgps.train)`` over ``keys`` [S] split over ``mesh`` (default: all local
-    devices); S need not be a multiple of the device count.
+    devices; one seed per device runs the plain ``mdgps.train``, :func:`over_seed_axis`); S need
+    not be a multiple of the device count.
 
     Returns:
       (final TrainState, metrics history), leaves with a leading seed axis [S, ...].
