@@ -111,9 +111,9 @@ def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:
     """``fn`` mapped over the leading seed axis of the ``batched`` positional arguments; every
     output leaf gets that axis. A block of one seed runs ``fn`` itself on the squeezed
     arguments instead of ``jax.vmap``: the same arithmetic up to round-off (XLA may pick other
-    kernels for a batch of one), traced about four times faster and compiled faster, because
-    tracing under ``vmap`` passes every operation through the batching rules and leaves size-one
-    batch dimensions for XLA to remove (benchmarks/RESULTS.md, twelfth session)."""
+    kernels for a batch of one), traced about four times faster (tracing under ``vmap`` passes
+    every operation through the batching rules), and on a CPU also compiled faster
+    (benchmarks/RESULTS.md, twelfth session)."""
     vmapped = jax.vmap(fn, in_axes=tuple(0 if b else None for b in batched))
 
     def mapped(*args):
