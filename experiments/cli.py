@@ -22,8 +22,8 @@ import traceback
 from gmr_jax import checkpoint, config, policies, runner, tasks
 from gmr_jax.sim import MJCFError
 
-# Iteration programs compiled at once (--compile-jobs): 2 and 4 were equally fast on an H100 and
-# 4 was slower on the 2-core CPU (benchmarks/RESULTS.md).
+# Programs (iterations, evaluations) compiled at once (--compile-jobs): 2 and 4 were equally fast
+# on an H100, 3 slower, and 4 was slower on the 2-core CPU (benchmarks/RESULTS.md).
 DEFAULT_COMPILE_JOBS = 2
 DEFAULT_COMPILATION_CACHE = os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(
     pathlib.Path("~/.cache/gmr_jax/xla").expanduser())
@@ -88,7 +88,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
     p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
-                   help="iteration programs compiled at once (default: %(default)s). XLA spreads "
+                   help="programs (iterations, evaluations) compiled at once (default: %(default)s). XLA spreads "
                         "one compilation over the cores, so more at once mostly slow each other")
     p.add_argument("--autotune", action="store_true",
                    help="let XLA time kernel variants on the GPU while compiling. Off by default: "
