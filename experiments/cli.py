@@ -19,6 +19,7 @@ import sys
 import time
 import traceback
 
+from experiments import xla_flags
 from gmr_jax import checkpoint, config, policies, runner, tasks
 from gmr_jax.sim import MJCFError
 
@@ -227,25 +228,30 @@ def add_precision_argument(p: argparse.ArgumentParser) -> None:
 
 def setup_jax(precision: str, autotune: bool = False, deterministic: bool = True,
               compilation_cache: str = "none") -> str:
-    """Set XLA's GPU flags and JAX's precision before the first computation; returns the
+    """Check XLA's GPU flags and set JAX's precision before the first computation; returns the
     precision used ("auto" resolved: float32 on a GPU, float64 elsewhere).
 
-    XLA_FLAGS already naming a flag wins over the arguments. autotune=False turns GPU autotuning
-    off (kernels chosen by timing differ from call to call); deterministic=True makes XLA's GPU
-    scatters and reductions deterministic (without it, atomics make repeated runs differ)."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    # Read when the backend starts (the first device query), so set before it.
-    if not autotune and "xla_gpu_autotune_level" not in flags:
-        flags = f"{flags} --xla_gpu_autotune_level=0"
-    if deterministic and "xla_gpu_deterministic_ops" not in flags:
-        flags = f"{flags} --xla_gpu_deterministic_ops=true"
-    os.environ["XLA_FLAGS"] = flags.strip()
+    The flags (``xla_flags.with_cli_flags``: autotuning off unless ``autotune``, deterministic
+    GPU kernels if ``deterministic``; XLA_FLAGS already naming a flag wins) must be in XLA_FLAGS
+    before JAX is imported, which ``import experiments`` does for the command line's arguments.
+    Raises RuntimeError on a GPU where they came after JAX's import: XLA would not see them (a
+    CPU ignores them).
+    """
     import jax
 
+    current = os.environ.get("XLA_FLAGS", "").strip()
+    wanted = xla_flags.with_cli_flags(current, autotune, deterministic)
+    late = f"{xla_flags.added_after_jax} {wanted[len(current):]}".strip()
+    os.environ["XLA_FLAGS"] = wanted
     if compilation_cache != "none":
         jax.config.update("jax_compilation_cache_dir", compilation_cache)
-    if precision == "auto":  # starts the backend, which reads XLA_FLAGS (set above)
-        precision = "float32" if jax.default_backend() == "gpu" else "float64"
+    backend = jax.default_backend()  # starts the backend
+    if late and backend == "gpu":
+        raise RuntimeError(f"XLA_FLAGS got {late!r} after JAX was imported, so XLA on the GPU does "
+                           "not see it: import experiments before jax, or start the process with "
+                           f"XLA_FLAGS={wanted!r}")
+    if precision == "auto":
+        precision = "float32" if backend == "gpu" else "float64"
     jax.config.update("jax_enable_x64", precision == "float64")
     return precision
 

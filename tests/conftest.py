@@ -16,6 +16,7 @@ if "xla_force_host_platform_device_count" not in _FLAGS:
 if sys.platform.startswith("linux") and ctypes.util.find_library("EGL"):
     os.environ.setdefault("MUJOCO_GL", "egl")
 
+import experiments  # noqa: E402,F401  (the CLI's XLA flags, before JAX: experiments/xla_flags.py)
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
