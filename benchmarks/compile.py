@@ -105,6 +105,8 @@ def stage_programs(cfg: config.Config):
         progs.append(("S-step", lambda p, t, sm, mg, kk: mdgps.s_step(cfg, p, t, sm, mg, kk),
                       (state.policy, traj, samples, marginals, k)))
     progs.append(("learning curve", lambda t, p: mdgps.learning_curve(cfg, t, p, x0), (traj, state.policy)))
+    progs.append(("rollouts of train's step (samples + learning curve)",
+                  lambda s, kk, f: mdgps.rollout_stage(cfg, s, x0, kk, f), (state, k, first)))
     progs.append(("iteration", lambda s, kk, f: mdgps.iteration(cfg, s, kk, f), (state, k, first)))
     # The iteration as the runner compiles it for a run of one seed: its seed program
     # (sharding.over_seed_axis, the plain iteration on the squeezed seed), beside the same program

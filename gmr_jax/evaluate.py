@@ -106,16 +106,12 @@ def execute_pair(cfg: Config, traj: LinearGaussianPolicy, policy_fn, x0: jax.Arr
     s = sim_lib.make_sim(cfg.sim)
     if s.backend == "mujoco":
         return execute(cfg, traj, x0), execute(cfg, policy_fn, x0)
-    eps = jnp.zeros((cfg.task.T, s.dU), x0.dtype)
-
-    def one(pol, x, use_policy):
-        act = lambda t, xx, e: jnp.where(  # noqa: E731
-            use_policy, policy_fn(t, xx, e), sim_lib.linear_gaussian_action(pol, t, xx, e))
-        return sim_lib.rollout(s, act, x, eps)
-
-    both = jax.vmap(jax.vmap(one, in_axes=(0, 0, None)), in_axes=(None, None, 0))(
-        traj, x0, jnp.array([False, True]))
-    return jax.tree_util.tree_map(lambda a: a[0], both), jax.tree_util.tree_map(lambda a: a[1], both)
+    M = x0.shape[0]
+    twice = lambda a: jnp.concatenate([a, a])  # noqa: E731
+    both = sim_lib.rollout_per_row(s, jax.tree_util.tree_map(twice, traj), (policy_fn,),
+                                   jnp.repeat(jnp.arange(2), M), twice(x0),
+                                   jnp.zeros((2 * M, cfg.task.T, s.dU), x0.dtype))
+    return jax.tree_util.tree_map(lambda a: a[:M], both), jax.tree_util.tree_map(lambda a: a[M:], both)
 
 
 def controllers_mse(cfg: Config, controller, x0: jax.Array) -> tuple[Trajectories, jax.Array]:

@@ -18,6 +18,11 @@ The first iteration differs in one way: MDGPS first fits the policy to the initi
 scalar and both differences are ``lax.cond``/``where`` on it, so one compiled program serves
 every iteration.
 
+``train`` runs the same iterations with the rollouts rearranged (``rollout_stage``): each scan
+step rolls out this iteration's samples together with the learning curve of the previous
+iteration's results, so the whole run holds one instance of the simulator's rollout, which is
+what most of its compilation costs with MJX.
+
 Axis conventions: condition M, sample N, time T. Every array in the state has a leading M axis
 except the iteration counter and the policy parameters (shared by the conditions).
 """
@@ -135,6 +140,15 @@ def init(cfg: Config, key: Array) -> TrainState:
 # Stages
 
 
+def sample_noise(cfg: Config, key: Array, M: int, num_samples: int, dtype) -> Array:
+    """The toolbox's smoothed exploration noise of N = num_samples rollouts per condition,
+    [M, N, T, dU] in ``dtype``."""
+    dU = sim_lib.make_sim(cfg.sim).dU
+    keys = jax.random.split(key, (M, num_samples))
+    eps = jax.vmap(jax.vmap(lambda k: noise_lib.smooth_noise(k, cfg.task.T, dU, cfg.noise)))(keys)
+    return eps.astype(dtype)
+
+
 def sample(cfg: Config, controller, x0: Array, key: Array, num_samples: int) -> Trajectories:
     """Noisy rollouts with the toolbox's smoothed exploration noise.
 
@@ -148,10 +162,7 @@ def sample(cfg: Config, controller, x0: Array, key: Array, num_samples: int) -> 
       Trajectories with leading axes [M, N].
     """
     s = sim_lib.make_sim(cfg.sim)
-    M = x0.shape[0]
-    keys = jax.random.split(key, (M, num_samples))
-    eps = jax.vmap(jax.vmap(lambda k: noise_lib.smooth_noise(k, cfg.task.T, s.dU, cfg.noise)))(keys)
-    eps = eps.astype(x0.dtype)
+    eps = sample_noise(cfg, key, x0.shape[0], num_samples, x0.dtype)
     axis = 0 if isinstance(controller, LinearGaussianPolicy) else None
     per_sample = jax.vmap(lambda p, x, e: sim_lib.rollout(s, p, x, e), in_axes=(None, None, 0))
     return jax.vmap(per_sample, in_axes=(axis, 0, 0))(controller, x0, eps)
@@ -165,6 +176,45 @@ def sample_stage(cfg: Config, state: TrainState, x0: Array, key: Array, first: A
         return local()
     explore = policies.sampling_fn(policies.for_config(cfg), state.policy.params)
     return jax.lax.cond(first, local, lambda: sample(cfg, explore, x0, key, cfg.num_samples))
+
+
+def rollout_stage(cfg: Config, state: TrainState, x0: Array, key: Array,
+                  first: Array) -> tuple[Trajectories, dict]:
+    """``sample_stage``'s rollouts [M, N] and ``learning_curve`` of the state's controllers and
+    policy (the previous iteration's results), together.
+
+    With MJX all of them (M·N samples, M noiseless runs of the controllers, M of the policy) are
+    one batched rollout (``sim.rollout_per_row``), so a program built on this stage holds one
+    instance of MJX's step: ``train`` is. With C MuJoCo they are the two stages as they are (the
+    local controllers' rollouts are one host callback there). Same key, same samples.
+
+    Returns: (Trajectories [M, N, ...], learning-curve metrics as ``learning_curve``'s).
+    """
+    s = sim_lib.make_sim(cfg.sim)
+    if s.backend != "mjx":
+        return sample_stage(cfg, state, x0, key, first), learning_curve(cfg, state.traj, state.policy, x0)
+    M, N = x0.shape[0], cfg.num_samples
+    conds = [jnp.repeat(jnp.arange(M), N), jnp.arange(M)]
+    which = [jnp.zeros((M * N,), jnp.int32), jnp.zeros((M,), jnp.int32)]
+    fns = ()
+    if state.policy is not None:
+        pol = policies.for_config(cfg)
+        fns = (policies.mean_fn(pol, state.policy.params),)
+        conds.append(jnp.arange(M))
+        which.append(jnp.ones((M,), jnp.int32))
+        if cfg.sample_on_policy:  # after the first iteration the samples explore with the policy
+            fns += (policies.sampling_fn(pol, state.policy.params),)
+            which[0] = jnp.where(first, which[0], 2)
+    cond = jnp.concatenate(conds)
+    R = cond.shape[0]
+    eps = sample_noise(cfg, key, M, N, x0.dtype).reshape((M * N, cfg.task.T, s.dU))
+    eps = jnp.concatenate([eps, jnp.zeros((R - M * N,) + eps.shape[1:], eps.dtype)])
+    out = sim_lib.rollout_per_row(s, jax.tree_util.tree_map(lambda a: a[cond], state.traj), fns,
+                                  jnp.concatenate(which), x0[cond], eps)
+    rows = lambda lo, hi: jax.tree_util.tree_map(lambda a: a[lo:hi], out)  # noqa: E731
+    samples = jax.tree_util.tree_map(lambda a: a.reshape((M, N) + a.shape[1:]), rows(0, M * N))
+    pol_out = rows(M * N + M, R) if state.policy is not None else None
+    return samples, _curve_metrics(cfg, rows(M * N, M * N + M), pol_out)
 
 
 def cost_stage(cfg: Config, samples: Trajectories) -> tuple[QuadraticCost, Array]:
@@ -302,18 +352,58 @@ def learning_curve(cfg: Config, traj: LinearGaussianPolicy, policy: PolicyState 
     layer") and of the global policy: their final-state MSE [M], end-effector paths and final
     states."""
     if policy is None:
-        out, mse = evaluate.controllers_mse(cfg, traj, x0)
-        return {"final_state_mse_lqr": mse, "eval_ee": out.ee, "eval_final_x": out.X[:, -1]}
+        return _curve_metrics(cfg, evaluate.execute(cfg, traj, x0))
     mean = policies.mean_fn(policies.for_config(cfg), policy.params)
-    out, pol_out = evaluate.execute_pair(cfg, traj, mean, x0)  # one MJX rollout program for both
-    return {"final_state_mse_lqr": evaluate.task_mse(cfg, out.X[:, -1]), "eval_ee": out.ee,
-            "eval_final_x": out.X[:, -1],
-            "final_state_mse_policy": evaluate.task_mse(cfg, pol_out.X[:, -1]),
-            "policy_eval_ee": pol_out.ee, "policy_eval_final_x": pol_out.X[:, -1]}
+    return _curve_metrics(cfg, *evaluate.execute_pair(cfg, traj, mean, x0))  # one MJX rollout program for both
+
+
+def _curve_metrics(cfg: Config, out: Trajectories, pol_out: Trajectories | None = None) -> dict:
+    """The learning curve's metrics from the noiseless rollouts [M, T, ...] of the controllers
+    and (MDGPS / GMR) of the policy."""
+    metrics = {"final_state_mse_lqr": evaluate.task_mse(cfg, out.X[:, -1]), "eval_ee": out.ee,
+               "eval_final_x": out.X[:, -1]}
+    if pol_out is not None:
+        metrics.update(final_state_mse_policy=evaluate.task_mse(cfg, pol_out.X[:, -1]),
+                       policy_eval_ee=pol_out.ee, policy_eval_final_x=pol_out.X[:, -1])
+    return metrics
 
 
 # ---------------------------------------------------------------------------------------------
 # The iteration and the whole run
+
+
+def _stage_keys(key: Array) -> tuple[Array, ...]:
+    """An iteration's keys: (sample, dynamics, linearisation, catch-up S-step, S-step)."""
+    return tuple(jax.random.split(key, 5))
+
+
+def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
+           first: Array) -> tuple[TrainState, dict]:
+    """Everything of an iteration after its rollouts: cost expansion, dynamics fit, KL anchor,
+    step size, C-step, S-step (call under ``MATMUL_PRECISION``). Returns (new state, metrics
+    without the learning curve's)."""
+    _, k_dyn, k_lin, k_catch_up, k_sstep = _stage_keys(key)
+    cost, sample_costs = cost_stage(cfg, samples)
+    dyn_prior, dyn = dynamics_stage(cfg, state.dyn_prior, samples, k_dyn)
+    policy, anchor, catch_up_ok = anchor_stage(cfg, state, samples, first, k_catch_up, k_lin)
+    model = LocalModel(anchor=anchor, dyn=dyn, cost=cost, sample_cost=jnp.mean(sample_costs, axis=-1))
+    step_mult, predicted, actual = step_size.update(cfg.step, state.step_mult, first, state.prev,
+                                                    state.traj, model)
+    traj, marginals, eta, kl, epsilon, info = c_step(cfg, dyn, cost, anchor, state.eta, step_mult)
+    policy, sstep_loss, sstep_ok = s_step(cfg, policy, traj, samples, marginals, k_sstep)
+
+    ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & catch_up_ok & sstep_ok
+    metrics = {
+        "sample_cost": model.sample_cost, "sample_costs": sample_costs, "kl": kl,
+        "epsilon": epsilon, "eta": eta, "step_mult": step_mult,
+        "predicted_improvement": predicted, "actual_improvement": actual,
+        "eta_iterations": info.iterations, "eta_converged": info.converged,
+        "sample_final_x": samples.X[:, :, -1], "ok": ok}
+    if policy is not None:
+        metrics["sstep_loss"] = jnp.broadcast_to(sstep_loss, ok.shape)
+    new_state = TrainState(iteration=state.iteration + 1, traj=traj, eta=eta, step_mult=step_mult,
+                           dyn_prior=dyn_prior, prev=model, policy=policy)
+    return new_state, metrics
 
 
 def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = None):
@@ -335,30 +425,9 @@ def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = 
     with jax.default_matmul_precision(MATMUL_PRECISION):
         first = state.iteration == 0 if first is None else jnp.asarray(first)
         x0 = tasks.initial_states(cfg.task, state.eta.dtype)
-        k_sample, k_dyn, k_lin, k_catch_up, k_sstep = jax.random.split(key, 5)
-
-        samples = sample_stage(cfg, state, x0, k_sample, first)
-        cost, sample_costs = cost_stage(cfg, samples)
-        dyn_prior, dyn = dynamics_stage(cfg, state.dyn_prior, samples, k_dyn)
-        policy, anchor, catch_up_ok = anchor_stage(cfg, state, samples, first, k_catch_up, k_lin)
-        model = LocalModel(anchor=anchor, dyn=dyn, cost=cost, sample_cost=jnp.mean(sample_costs, axis=-1))
-        step_mult, predicted, actual = step_size.update(cfg.step, state.step_mult, first, state.prev,
-                                                        state.traj, model)
-        traj, marginals, eta, kl, epsilon, info = c_step(cfg, dyn, cost, anchor, state.eta, step_mult)
-        policy, sstep_loss, sstep_ok = s_step(cfg, policy, traj, samples, marginals, k_sstep)
-
-        ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & catch_up_ok & sstep_ok
-        metrics = {
-            "sample_cost": model.sample_cost, "sample_costs": sample_costs, "kl": kl,
-            "epsilon": epsilon, "eta": eta, "step_mult": step_mult,
-            "predicted_improvement": predicted, "actual_improvement": actual,
-            "eta_iterations": info.iterations, "eta_converged": info.converged,
-            "sample_final_x": samples.X[:, :, -1], "ok": ok,
-            **learning_curve(cfg, traj, policy, x0)}
-        if policy is not None:
-            metrics["sstep_loss"] = jnp.broadcast_to(sstep_loss, ok.shape)
-        new_state = TrainState(iteration=state.iteration + 1, traj=traj, eta=eta, step_mult=step_mult,
-                               dyn_prior=dyn_prior, prev=model, policy=policy)
+        samples = sample_stage(cfg, state, x0, _stage_keys(key)[0], first)
+        new_state, metrics = update(cfg, state, samples, key, first)
+        metrics.update(learning_curve(cfg, new_state.traj, new_state.policy, x0))
         return new_state, metrics
 
 
@@ -379,9 +448,33 @@ def train(cfg: Config, key: Array):
     Pure in ``key``: jit with ``cfg`` static and ``jax.vmap`` over keys to train many seeds (the
     first-iteration flag is a scan input, unbatched, so each iteration runs one branch).
 
+    The same iterations as ``iteration`` with the same keys, arranged so that the program holds
+    one instance of the rollouts: each scan step runs ``rollout_stage`` (this iteration's
+    samples and the learning curve of the previous iteration's results) and then ``update``;
+    one step more evaluates the last iteration's results, its ``update`` skipped by a
+    ``lax.cond`` on an unbatched flag and its samples (and the first step's learning curve, of
+    the initial controllers) discarded.
+
     Returns:
-      (final TrainState, metrics history: each entry with a leading iteration axis).
+      (final TrainState, metrics history: each entry with a leading iteration axis, as
+      ``iteration``'s metrics).
     """
-    k_init, keys = iteration_keys(key, cfg.iterations)
-    firsts = jnp.arange(cfg.iterations) == 0
-    return jax.lax.scan(lambda s, kf: iteration(cfg, s, *kf), init(cfg, k_init), (keys, firsts))
+    K = cfg.iterations
+    k_init, keys = iteration_keys(key, K)
+    keys = jnp.concatenate([keys, keys[-1:]])  # the evaluation step's samples are not used
+    steps = jnp.arange(K + 1)
+
+    def body(state, inp):
+        k, first, last = inp
+        with jax.default_matmul_precision(MATMUL_PRECISION):
+            x0 = tasks.initial_states(cfg.task, state.eta.dtype)
+            samples, curve = rollout_stage(cfg, state, x0, _stage_keys(k)[0], first)
+            trained = lambda: update(cfg, state, samples, k, first)  # noqa: E731
+            skipped = lambda: (state, _zeros_like_tree(jax.eval_shape(trained)[1]))  # noqa: E731
+            new_state, metrics = jax.lax.cond(last, skipped, trained)
+        return new_state, (metrics, curve)
+
+    final, (metrics, curve) = jax.lax.scan(body, init(cfg, k_init), (keys, steps == 0, steps == K))
+    history = jax.tree_util.tree_map(lambda a: a[:K], metrics)
+    history.update(jax.tree_util.tree_map(lambda a: a[1:], curve))
+    return final, history

@@ -524,6 +524,38 @@ def rollout(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: bool = True)
     return rollout_with_final(s, policy, x0, eps, with_ee)[0]
 
 
+def rollout_per_row(s: Sim, traj: types.LinearGaussianPolicy, fns: tuple[PolicyFn, ...], which: Array,
+                    x0: Array, eps: Array) -> types.Trajectories:
+    """R rollouts, each with its own controller, as one batched rollout (MJX).
+
+    Row r runs the local controller ``traj`` [r] when ``which[r] == 0`` and the callable
+    ``fns[which[r] - 1]`` otherwise. Every controller is evaluated at every step of every row and
+    the row's action picked by ``jnp.where``, so a program that needs rollouts of several
+    controllers holds one instance of the simulator's step instead of one per controller: on MJX
+    each instance costs seconds of compilation (benchmarks/RESULTS.md). The picked action is the
+    same arithmetic as a rollout of that controller alone.
+
+    Args:
+      traj: LinearGaussianPolicy with leading axis R (K [R, T, dU, dX], k, chol_pol_covar).
+      fns: rollout callables ``(t, x, eps_t) -> u``, shared by the rows.
+      which: [R] int, 0 for the local controller, i ≥ 1 for ``fns[i - 1]``.
+      x0: [R, dX] initial states; eps: [R, T, dU] noise (zeros for noiseless rows).
+    Returns:
+      Trajectories [R, T, ...].
+    """
+
+    def one(pol, x, e, w):
+        def act(t, xx, et):
+            u = linear_gaussian_action(pol, t, xx, et)
+            for i, fn in enumerate(fns, start=1):
+                u = jnp.where(w == i, fn(t, xx, et), u)
+            return u
+
+        return rollout(s, act, x, e)
+
+    return jax.vmap(one)(traj, x0, eps, which)
+
+
 def diverged(traj: types.Trajectories, x_final: Array | None = None) -> Array:
     """True for each rollout (leading batch axes of X) whose states or actions are not finite."""
     bad = ~jnp.all(jnp.isfinite(traj.X), axis=(-2, -1)) | ~jnp.all(jnp.isfinite(traj.U), axis=(-2, -1))

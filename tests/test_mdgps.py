@@ -158,3 +158,36 @@ def test_sampling_the_global_policy_applies_its_noisy_action():
         assert_trees_within(trajs.U[0, n], sim_lib.clip_torques(s, u), tol)
         # the noise is there: the applied torques are not the policy means
         assert not np.allclose(trajs.U[0, n], jax.vmap(lambda x: pol.mean(params, x))(X), atol=1e-6)
+
+
+def test_one_batched_rollout_equals_the_separate_rollouts():
+    """``train``'s one batched MJX rollout per iteration (``rollout_stage``: samples, noiseless
+    controllers, noiseless policy; here the samples explore with the policy, so every row kind
+    is there) and the learning curve's batched pair (``evaluate.execute_pair``) give what
+    separate rollouts of each controller give: ``sample_stage``'s samples and the metrics of
+    ``evaluate.execute`` of the controllers and of the policy, for the same state and key.
+    Tolerance from the computation (tests/tolerances.py): the separate rollouts rerun on the
+    state perturbed by ε relative, SAFETY times the spread."""
+    from gmr_jax import evaluate, policies, tasks
+
+    cfg = config.reach("AB", "mdgps", task__T=6, num_samples=2, sim__backend="mjx", sample_on_policy=True)
+    state = jax.jit(lambda k: mdgps.init(cfg, k))(jax.random.PRNGKey(0))
+    x0 = tasks.initial_states(cfg.task)
+    key, first = jax.random.PRNGKey(3), jnp.asarray(False)
+    mean = lambda st: policies.mean_fn(policies.for_config(cfg), st.policy.params)  # noqa: E731
+
+    @jax.jit
+    def separate(st, f):
+        curve = mdgps._curve_metrics(cfg, evaluate.execute(cfg, st.traj, x0), evaluate.execute(cfg, mean(st), x0))
+        return mdgps.sample_stage(cfg, st, x0, key, f), curve
+
+    ref, tol = measured_tol(lambda st: separate(st, first), (state,), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-8)
+    got = jax.jit(lambda st: mdgps.rollout_stage(cfg, st, x0, key, first))(state)
+    assert_trees_within(got, ref, tol)
+    pair = jax.jit(lambda st: mdgps.learning_curve(cfg, st.traj, st.policy, x0))(state)
+    assert_trees_within(pair, ref[1], tol[len(jax.tree_util.tree_leaves(ref[0])):])
+    np.testing.assert_array_equal(np.asarray(pair["eval_ee"].shape), (x0.shape[0], cfg.task.T, 3))
+    # the samples are the policy's noisy rollouts, not the controllers' (the row kinds differ)
+    local = separate(state, jnp.asarray(True))[0]
+    assert not np.allclose(got[0].U[:, :, 1:], local.U[:, :, 1:], atol=1e-6)
