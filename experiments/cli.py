@@ -20,7 +20,7 @@ import time
 import traceback
 
 from experiments import xla_flags
-from gmr_jax import checkpoint, config, policies, runner, tasks
+from gmr_jax import checkpoint, config, policies, runner, sharding, tasks
 from gmr_jax.sim import MJCFError
 
 # Programs (iterations, evaluations) compiled at once (--compile-jobs): 2 and 4 were equally fast
@@ -286,7 +286,9 @@ def run_study(args, t_start: float) -> int:
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
-        "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "python": platform.python_version(),
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+        "compiler_options": sharding.compiler_options(-(-args.seeds // len(used))),
+        "python": platform.python_version(),
         "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in args.configs.items()}}, indent=2))
     for (scenario, algorithm), cfg in args.configs.items():

@@ -89,22 +89,42 @@ def over_seeds(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
 # (benchmarks/RESULTS.md, eleventh session).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
+# On a GPU, a program of one seed per device runs its matrix products as cuBLAS calls instead of
+# Triton GEMMs: the same products to round-off, fewer kernels per S-step (no split-K reductions),
+# S-steps 8-17 % faster and the default run 9-17 % faster on an H100; from 8 seeds per device
+# the Triton GEMMs are faster (benchmarks/RESULTS.md, ninth, twelfth and fourteenth sessions).
+GPU_ONE_SEED_COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False}
+
+
+def wanted_compiler_options(backend: str, seeds_per_device: int, xla_flags: str) -> dict:
+    """The options :func:`compiler_options` asks for: ``CPU_COMPILER_OPTIONS`` on a CPU,
+    ``GPU_ONE_SEED_COMPILER_OPTIONS`` on a GPU for one seed per device, else none; none where
+    ``xla_flags`` names one of them (the user's choice wins)."""
+    options = {"cpu": CPU_COMPILER_OPTIONS,
+               "gpu": GPU_ONE_SEED_COMPILER_OPTIONS if seeds_per_device == 1 else {}}.get(backend, {})
+    return {} if any(name in xla_flags for name in options) else dict(options)
+
 
 @functools.lru_cache(maxsize=None)
-def compiler_options() -> dict:
-    """XLA options for compiling the programs of :func:`seed_program` on this backend (the runner
-    passes them to ``Lowered.compile``; a ``jax.jit`` option would refuse nested tracing):
-    ``CPU_COMPILER_OPTIONS`` on a CPU, none elsewhere, and none where ``XLA_FLAGS`` names one of
-    them (the user's choice wins) or this XLA does not know them (an unknown option in
-    ``XLA_FLAGS`` would abort the process; as a compile option it is only refused)."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if jax.default_backend() != "cpu" or any(name in flags for name in CPU_COMPILER_OPTIONS):
+def _accepted(options: tuple) -> dict:
+    """``options`` if this XLA compiles with them, else {} (an unknown option in ``XLA_FLAGS``
+    would abort the process; as a compile option it is only refused)."""
+    if not options:
         return {}
     try:
-        jax.jit(lambda x: x + 1).lower(jnp.zeros((), jnp.float32)).compile(compiler_options=CPU_COMPILER_OPTIONS)
+        jax.jit(lambda x: x + 1).lower(jnp.zeros((), jnp.float32)).compile(compiler_options=dict(options))
     except jax.errors.JaxRuntimeError:
         return {}
-    return dict(CPU_COMPILER_OPTIONS)
+    return dict(options)
+
+
+def compiler_options(seeds_per_device: int = 1) -> dict:
+    """XLA options for compiling the programs of :func:`seed_program` with ``seeds_per_device``
+    seeds on each device of this backend (the runner passes them to ``Lowered.compile``; a
+    ``jax.jit`` option would refuse nested tracing): :func:`wanted_compiler_options`, where
+    this XLA knows them."""
+    wanted = wanted_compiler_options(jax.default_backend(), seeds_per_device, os.environ.get("XLA_FLAGS", ""))
+    return _accepted(tuple(sorted(wanted.items())))
 
 
 def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:

@@ -122,13 +122,19 @@ def test_cpu_compiler_options_change_only_round_off(monkeypatch):
             compiler_options=sharding.CPU_COMPILER_OPTIONS)(params.net, batch)
     assert_trees_within(got, ref, tol)
 
-    sharding.compiler_options.cache_clear()
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    try:
-        assert sharding.compiler_options() == {}
-    finally:
-        monkeypatch.undo()
-        sharding.compiler_options.cache_clear()
+    assert sharding.compiler_options() == {}
+
+
+def test_compiler_options_by_backend_and_seeds_per_device():
+    """cuBLAS products (no Triton GEMMs) on a GPU for one seed per device only; the CPU option
+    for any seed count; none where XLA_FLAGS names the option."""
+    wanted = sharding.wanted_compiler_options
+    assert wanted("gpu", 1, "") == {"xla_gpu_enable_triton_gemm": False}
+    assert wanted("gpu", 2, "") == {} and wanted("gpu", 256, "") == {}
+    assert wanted("gpu", 1, "--xla_gpu_enable_triton_gemm=true") == {}
+    assert wanted("cpu", 1, "") == wanted("cpu", 64, "") == sharding.CPU_COMPILER_OPTIONS
+    assert wanted("tpu", 1, "") == {}
 
 
 def test_one_seed_runs_the_plain_program_and_more_seeds_the_vmapped_one():
