@@ -4,8 +4,9 @@ For each seed count S, one jitted ``jax.vmap(mdgps.train, in_axes=(None, 0))`` o
 (for one seed per device the plain ``mdgps.train``, ``sharding.over_seed_axis``),
 split over ``--devices`` local devices (``gmr_jax.sharding``; default all), runs the full
 configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples,
-T = 80, 10 iterations). Compile time (lower + compile) and run time (median over repeats, after
-compilation) are reported separately, with the final-state MSE reached, so that speed is never
+T = 80, 10 iterations), compiled with the XLA options the runner uses for that many seeds per
+device (``sharding.compiler_options``; ``--compiler-options none`` for XLA's defaults). Compile
+time (lower + compile) and run time (median over repeats, after compilation) are reported separately, with the final-state MSE reached, so that speed is never
 quoted for a run that did not learn. Example::
 
     python -m benchmarks.train --algorithm mdgps --seeds 1,8,64,256 --out train.json
@@ -45,6 +46,9 @@ def parse_args(argv=None):
     cli.add_precision_argument(p)
     p.add_argument("--devices", type=int, default=None, help="local devices to split the seeds over "
                    "(default: all)")
+    p.add_argument("--compiler-options", default="runner", choices=("runner", "none"),
+                   help="XLA compile options: the runner's for this many seeds per device "
+                        "(sharding.compiler_options) or none")
     p.add_argument("--out", help="write the results as JSON to this file")
     return p.parse_args(argv)
 
@@ -69,7 +73,8 @@ def main(argv=None) -> int:
     for n in [int(s) for s in args.seeds.split(",") if s]:
         keys = sharding.place(sharding.pad(jnp.stack([jax.random.PRNGKey(s) for s in range(n)]), n, mesh), mesh)
         t0 = time.perf_counter()
-        compiled = fn.lower(cfg, keys).compile()
+        options = sharding.compiler_options(-(-n // mesh.size)) if args.compiler_options == "runner" else {}
+        compiled = fn.lower(cfg, keys).compile(compiler_options=options or None)
         compile_s = time.perf_counter() - t0
         times = []
         for _ in range(max(1, args.repeats)):
@@ -81,7 +86,7 @@ def main(argv=None) -> int:
         curve = "final_state_mse_policy" if "final_state_mse_policy" in hist else "final_state_mse_lqr"
         mse = np.asarray(hist[curve])[:, -1].max(axis=-1)  # [seeds], worst condition, last iteration
         ok = bool(np.all(np.asarray(hist["ok"])))
-        row = {"seeds": n, "compile_s": compile_s, "run_s": statistics.median(times),
+        row = {"seeds": n, "compiler_options": options, "compile_s": compile_s, "run_s": statistics.median(times),
                "curve": curve, "final_mse_median": float(np.median(mse)),
                "success_0.01": int((mse < cfg.task.success_threshold).sum()), "all_ok": ok}
         rows.append(row)
