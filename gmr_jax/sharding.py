@@ -91,7 +91,7 @@ CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 # On a GPU, a program of one seed per device runs its matrix products as cuBLAS calls instead of
 # Triton GEMMs: the same products to round-off, fewer kernels per S-step (no split-K reductions),
-# S-steps 8-17 % faster and the default run 9-17 % faster on an H100; from 8 seeds per device
+# S-steps 8-17 % faster and the default run 9-17 % faster on an H100; from 2 seeds per device
 # the Triton GEMMs are faster (benchmarks/RESULTS.md, ninth, twelfth and fourteenth sessions).
 GPU_ONE_SEED_COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False}
 
