@@ -73,7 +73,7 @@ def main(argv=None) -> int:
     for n in [int(s) for s in args.seeds.split(",") if s]:
         keys = sharding.place(sharding.pad(jnp.stack([jax.random.PRNGKey(s) for s in range(n)]), n, mesh), mesh)
         t0 = time.perf_counter()
-        options = sharding.compiler_options(-(-n // mesh.size)) if args.compiler_options == "runner" else {}
+        options = sharding.compiler_options(sharding.seeds_per_device(n, mesh.size)) if args.compiler_options == "runner" else {}
         compiled = fn.lower(cfg, keys).compile(compiler_options=options or None)
         compile_s = time.perf_counter() - t0
         times = []

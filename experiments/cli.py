@@ -162,7 +162,7 @@ def resolve_adam_entries(args) -> dict:
     if "sstep__adam_entries" in args.overrides or jax.default_backend() != "gpu":
         return {}
     devices = min(args.devices or len(jax.local_devices()), len(jax.local_devices()))
-    per_device = -(-args.seeds // max(devices, 1))
+    per_device = sharding.seeds_per_device(args.seeds, devices)
     return {"sstep__adam_entries": "trained"} if per_device >= TRAINED_ENTRIES_MIN_SEEDS else {}
 
 
@@ -287,7 +287,7 @@ def run_study(args, t_start: float) -> int:
         "seeds": seeds, "device": device, "precision": args.precision,
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
-        "compiler_options": sharding.compiler_options(-(-args.seeds // len(used))),
+        "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
         "python": platform.python_version(),
         "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in args.configs.items()}}, indent=2))

@@ -270,7 +270,7 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     if not isinstance(program, jax.stages.Lowered):
         return program
     with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
-        options = sharding.compiler_options(-(-num_seeds // scheduler.mesh.size))
+        options = sharding.compiler_options(sharding.seeds_per_device(num_seeds, scheduler.mesh.size))
         compiled = program.compile(compiler_options=options or None)
     scheduler.programs[(kind, program_config(cfg), num_seeds)] = compiled
     return compiled
@@ -432,7 +432,7 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
 
     def make_initial():
         with timer("init_s"):
-            options = sharding.compiler_options(-(-k_init.shape[0] // layout.mesh.size))
+            options = sharding.compiler_options(sharding.seeds_per_device(k_init.shape[0], layout.mesh.size))
             compiled = init_program.lower(program_config(cfg), k_init).compile(compiler_options=options or None)
             return jax.block_until_ready(compiled(k_init))
     state_future = scheduler.pool.submit(make_initial)

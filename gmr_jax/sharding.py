@@ -39,10 +39,14 @@ def seed_mesh(devices: int | None = None) -> Mesh:
     return jax.make_mesh((n,), (AXIS,), axis_types=(jax.sharding.AxisType.Auto,), devices=available[:n])
 
 
+def seeds_per_device(num_seeds: int, devices: int) -> int:
+    """The seeds each of ``devices`` devices holds (the padded block, :func:`padded_count`)."""
+    return -(-num_seeds // max(devices, 1))
+
+
 def padded_count(num_seeds: int, mesh: Mesh) -> int:
     """The seed count rounded up to a multiple of the mesh's device count."""
-    n = mesh.size
-    return -(-num_seeds // n) * n
+    return seeds_per_device(num_seeds, mesh.size) * mesh.size
 
 
 def pad(tree, num_seeds: int, mesh: Mesh):
