@@ -343,6 +343,10 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
     prog = f"python -m experiments.{task_name}"
     args.precision = setup_jax(args.precision, args.autotune, not args.nondeterministic,
                                args.compilation_cache)
+    if args.precision != "float64" and any(c.float32_stages for c in args.configs.values()):
+        print(f"{prog}: error: --set float32_stages runs stages of a float64 run in float32: "
+              f"add --precision float64 (this run is {args.precision})", file=sys.stderr)
+        return 2
     try:
         return run_study(args, t_start)
     except runner.Interrupted as err:

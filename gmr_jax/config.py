@@ -520,6 +520,12 @@ class GMRConfig:
 
 POLICY_LINEARIZATIONS = ("gmm", "autodiff")
 
+FLOAT32_STAGES = ("cost", "dynamics", "policy_linearization", "step_size", "cstep", "sstep")
+"""Stages of ``mdgps.update`` that ``Config.float32_stages`` can run in float32 inside a float64
+run: the cost expansion, the dynamics fit (prior and per-step fit), the linearisation of the
+global policy (its prior and fit), the step-size rule, the C-step (η search) and the S-steps
+(the catch-up S-step too)."""
+
 
 @dataclass(frozen=True)
 class Config:
@@ -541,6 +547,11 @@ class Config:
         "gmm" (the toolbox's GMM-prior fit around the samples, default) or "autodiff" (exact
         first-order expansion of the policy mean around the per-step sample mean states;
         gmr-method.md §3.8).
+      float32_stages: a diagnostic: these stages (names in ``FLOAT32_STAGES``) of a float64 run
+        compute in float32 (their array inputs are rounded to float32, their outputs widened
+        back), to find which stage's float32 arithmetic changes a result that differs between
+        the precisions. Needs a float64 run (``jax_enable_x64``); empty (every stage in the
+        run's precision) by default.
     """
 
     task: TaskConfig
@@ -560,6 +571,7 @@ class Config:
     gmr: GMRConfig = field(default_factory=GMRConfig)
     sample_on_policy: bool = False
     policy_linearization: str = "gmm"
+    float32_stages: tuple[str, ...] = ()
 
     def __post_init__(self):
         from gmr_jax import policies, tasks  # both registries import this module
@@ -570,6 +582,13 @@ class Config:
         if self.num_samples < 2:
             raise ValueError(f"num_samples={self.num_samples}: the dynamics fit needs at least 2 samples")
         check_choice("policy_linearization", self.policy_linearization, POLICY_LINEARIZATIONS)
+        if not isinstance(self.float32_stages, tuple):
+            raise ValueError(f"float32_stages={self.float32_stages!r}: must be a tuple of stage names "
+                             f"from {FLOAT32_STAGES}, e.g. --set \"float32_stages=('dynamics',)\"")
+        for stage in self.float32_stages:
+            check_choice("float32_stages entry", stage, FLOAT32_STAGES)
+        if len(set(self.float32_stages)) != len(self.float32_stages):
+            raise ValueError(f"float32_stages={self.float32_stages!r}: a stage is named twice")
         cost_type = tasks.get(self.task.name).cost_config
         if not isinstance(self.cost, cost_type):
             raise ValueError(f"cost={type(self.cost).__name__}: task {self.task.name!r} needs a "

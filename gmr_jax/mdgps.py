@@ -140,6 +140,38 @@ def init(cfg: Config, key: Array) -> TrainState:
 # Stages
 
 
+def in_float32(name: str, fn):
+    """``fn`` computing in float32 inside a float64 run (``Config.float32_stages``).
+
+    Its floating array arguments are rounded to float32 and its floating outputs widened back to
+    float64, so the stage runs its own arithmetic in float32 and everything around it stays in
+    float64. Raises ValueError when an argument is not float64 (the diagnostic needs a float64
+    run) and TypeError when an output is not float32 (the stage would have mixed in float64
+    arithmetic, so the diagnostic would not measure what it claims).
+    """
+    def floating(a):
+        return isinstance(a, jax.Array) and jnp.issubdtype(a.dtype, jnp.floating)
+
+    def wrapped(*args):
+        leaves = [a for a in jax.tree_util.tree_leaves(args) if floating(a)]
+        if any(a.dtype != jnp.float64 for a in leaves):
+            raise ValueError(f"float32_stages ({name!r}) needs a float64 run: use --precision float64")
+        narrow = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32) if floating(a) else a, args)
+        out = fn(*narrow)
+        wide = [a.dtype for a in jax.tree_util.tree_leaves(out) if floating(a) and a.dtype != jnp.float32]
+        if wide:
+            raise TypeError(f"stage {name!r} returned {wide[0]} from float32 inputs: it mixes in "
+                            "float64 arithmetic, so float32_stages cannot run it in float32")
+        return jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if floating(a) else a, out)
+
+    return wrapped
+
+
+def _stage(cfg: Config, name: str, fn):
+    """``fn``, or ``in_float32(name, fn)`` when ``cfg.float32_stages`` names it."""
+    return in_float32(name, fn) if name in cfg.float32_stages else fn
+
+
 def sample_noise(cfg: Config, key: Array, M: int, num_samples: int, dtype) -> Array:
     """The toolbox's smoothed exploration noise of N = num_samples rollouts per condition,
     [M, N, T, dU] in ``dtype``."""
@@ -279,7 +311,8 @@ def anchor_stage(cfg: Config, state: TrainState, samples: Trajectories, first: A
         return new, ok
 
     params, ok = jax.lax.cond(first, catch_up, lambda p: (p, jnp.asarray(True)), state.policy.params)
-    anchor, prior = linearize_global_policy(cfg, params, state.policy.prior, samples.X, key_lin)
+    linearize_fn = _stage(cfg, "policy_linearization", linearize_global_policy)
+    anchor, prior = linearize_fn(cfg, params, state.policy.prior, samples.X, key_lin)
     return PolicyState(params=params, prior=prior), anchor, ok
 
 
@@ -330,8 +363,12 @@ def sstep_data(traj: LinearGaussianPolicy, X: Array, marginals: Marginals | None
 def fit_policy(cfg: Config, params, data: policies.SStepData, key: Array):
     """One S-step of the configured policy: (new params, last epoch's loss [], [] bool finite)."""
     impl = None if cfg.sstep.impl == "auto" else cfg.sstep.impl
-    new_params, info = sstep_lib.sstep(policies.for_config(cfg), params, data, key, cfg.sstep, impl=impl)
-    return new_params, info["loss"][-1], info["finite"]
+
+    def fit(params, data, key):
+        new_params, info = sstep_lib.sstep(policies.for_config(cfg), params, data, key, cfg.sstep, impl=impl)
+        return new_params, info["loss"][-1], info["finite"]
+
+    return _stage(cfg, "sstep", fit)(params, data, key)
 
 
 def s_step(cfg: Config, policy: PolicyState | None, traj: LinearGaussianPolicy, samples: Trajectories,
@@ -383,13 +420,14 @@ def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
     step size, C-step, S-step (call under ``MATMUL_PRECISION``). Returns (new state, metrics
     without the learning curve's)."""
     _, k_dyn, k_lin, k_catch_up, k_sstep = _stage_keys(key)
-    cost, sample_costs = cost_stage(cfg, samples)
-    dyn_prior, dyn = dynamics_stage(cfg, state.dyn_prior, samples, k_dyn)
+    cost, sample_costs = _stage(cfg, "cost", cost_stage)(cfg, samples)
+    dyn_prior, dyn = _stage(cfg, "dynamics", dynamics_stage)(cfg, state.dyn_prior, samples, k_dyn)
     policy, anchor, catch_up_ok = anchor_stage(cfg, state, samples, first, k_catch_up, k_lin)
     model = LocalModel(anchor=anchor, dyn=dyn, cost=cost, sample_cost=jnp.mean(sample_costs, axis=-1))
-    step_mult, predicted, actual = step_size.update(cfg.step, state.step_mult, first, state.prev,
-                                                    state.traj, model)
-    traj, marginals, eta, kl, epsilon, info = c_step(cfg, dyn, cost, anchor, state.eta, step_mult)
+    step_mult, predicted, actual = _stage(cfg, "step_size", step_size.update)(
+        cfg.step, state.step_mult, first, state.prev, state.traj, model)
+    traj, marginals, eta, kl, epsilon, info = _stage(cfg, "cstep", c_step)(
+        cfg, dyn, cost, anchor, state.eta, step_mult)
     policy, sstep_loss, sstep_ok = s_step(cfg, policy, traj, samples, marginals, k_sstep)
 
     ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & catch_up_ok & sstep_ok
