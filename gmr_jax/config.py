@@ -77,6 +77,9 @@ class SimConfig:
       clip_torques: saturate commanded torques at the actuator peak torques (ctrlrange).
       backend: ``"mjx"`` (MJX, impl='jax'), ``"mujoco"`` (C MuJoCo on the host through
         ``jax.pure_callback``) or ``"auto"`` (mjx where JAX has a GPU, else mujoco).
+      float32: a diagnostic beside ``Config.float32_stages``: in a float64 run, MJX steps the
+        plant in float32 (states and torques rounded to float32 at each control step, the result
+        widened back), everything else stays in float64. MJX only.
     """
 
     scene: str = "reach"
@@ -85,6 +88,7 @@ class SimConfig:
     gravity_compensation: bool = True
     clip_torques: bool = True
     backend: str = "auto"
+    float32: bool = False
 
     def __post_init__(self):
         if not (isinstance(self.scene, str) and self.scene):
@@ -94,6 +98,7 @@ class SimConfig:
         check_bool("sim.gravity_compensation", self.gravity_compensation)
         check_bool("sim.clip_torques", self.clip_torques)
         check_choice("sim.backend", self.backend, BACKENDS)
+        check_bool("sim.float32", self.float32)
 
     @property
     def timestep(self) -> float:

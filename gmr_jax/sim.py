@@ -221,6 +221,9 @@ def make_sim(cfg: SimConfig) -> Sim:
     if not cfg.control_dt > 0:
         raise ValueError(f"sim.control_dt={cfg.control_dt!r}: must be a positive number")
     backend = _resolve_backend(cfg.backend)
+    if cfg.float32 and backend != "mjx":
+        raise ValueError("sim.float32 steps MJX in float32; C MuJoCo computes in float64 only: "
+                         "use --backend mjx or leave sim.float32 off")
     path = scene_path(cfg.scene)
     if not path.is_file():
         available = sorted(p.stem for p in MJCF_DIR.glob("*.xml"))
@@ -441,6 +444,11 @@ def step_unclipped(s: Sim, x: Array, u: Array) -> Array:
     """One control step without the torque saturation of :func:`step` (x [dX], u [dU] → [dX])."""
     x = jnp.asarray(x)
     u = jnp.asarray(u, x.dtype)
+    if s.backend == "mjx" and s.config.float32 and x.dtype == jnp.float64:
+        # traced with x64 off: the float32 MJX model, and float32 for MJX's own constants too
+        with jax.enable_x64(False):
+            x_next = _mjx_step_jit(s, x.astype(jnp.float32), u.astype(jnp.float32))
+        return x_next.astype(x.dtype)
     if s.backend == "mjx":
         return _mjx_step_jit(s, x, u)
     return _host_step(s, x, u)
