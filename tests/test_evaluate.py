@@ -28,6 +28,28 @@ def test_robustness_states_are_fixed_and_in_range():
     assert np.all(q.std(axis=0) > 0.3)
 
 
+@pytest.mark.parametrize("task", ["reach", "block_in_hole"])
+def test_evaluation_states_are_the_same_in_both_precisions(task):
+    # JAX draws other numbers from one key in float32 than in float64: the fixed states must not
+    # follow the run's precision (a float32 study evaluated other states before).
+    cfg = config.make(task, None, "mdgps", sim__backend="mujoco")
+    rob64, sweep64 = (np.asarray(f(cfg)) for f in (evaluate.robustness_states, evaluate.sweep_states))
+    with jax.enable_x64(False):
+        rob32, sweep32 = (np.asarray(f(cfg)) for f in (evaluate.robustness_states, evaluate.sweep_states))
+    assert rob32.dtype == sweep32.dtype == np.float32
+    np.testing.assert_array_equal(rob32, rob64.astype(np.float32))  # drawn in float64, then rounded
+    # The sweep's states x0 + r·d/‖d‖ are formed in the run's precision: the norm over nq angles
+    # and the four other roundings (d, the division, the product, the sum) each add at most ε
+    # of |x0| + r.
+    nq = 6
+    x0 = np.asarray(tasks.initial_states(cfg.task))
+    radii = np.asarray(tasks.of(cfg).sweep_radii)
+    scale = np.max(np.abs(x0)) + np.max(radii)
+    tol = (nq + 4) * np.finfo(np.float32).eps * scale
+    np.testing.assert_allclose(sweep32, sweep64, rtol=0, atol=tol)
+    assert np.max(np.abs(sweep64 - sweep64[:1])) > 100 * tol  # the radii spread the states
+
+
 def test_robustness_matches_single_rollouts():
     params = policies.for_config(CFG).init(jax.random.PRNGKey(0), 12, 6)
     x0 = evaluate.robustness_states(CFG, num=4)

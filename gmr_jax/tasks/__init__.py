@@ -116,14 +116,28 @@ def at_rest(q) -> np.ndarray:
     return np.concatenate([q, np.zeros_like(q)], axis=-1)
 
 
-def disturb(x0: jax.Array, radii: Sequence[float], per_radius: int, key: jax.Array, nq: int) -> jax.Array:
+def fixed_draw(draw: Callable[[], jax.Array]) -> np.ndarray:
+    """``draw()``, random numbers from a fixed key, evaluated at once in float64 whatever the
+    run's precision (also inside a ``jit`` trace).
+
+    JAX draws other numbers from one key in float32 than in float64, so the evaluation's fixed
+    random states drawn in the run's precision were a different set in float32 runs; drawn here
+    they are the same states in both (rounded in float32).
+    """
+    with jax.enable_x64(True), jax.ensure_compile_time_eval():
+        return np.asarray(draw(), np.float64)
+
+
+def disturb(x0: jax.Array, radii: Sequence[float], per_radius: int, seed: int, nq: int) -> jax.Array:
     """States x0_m + r·d around each training state, d uniform on the unit sphere of the
-    joint-angle subspace (velocities unchanged), drawn from ``key`` in x0's dtype.
+    joint-angle subspace (velocities unchanged): the directions drawn from ``seed`` in float64
+    (``fixed_draw``), the states formed in x0's dtype.
 
     Args:
       x0: [M, dX] training initial states.
       radii: [R] disturbance radii (rad, Euclidean norm over the joint angles).
       per_radius: states per radius and condition.
+      seed: PRNG seed of the directions.
       nq: number of joint angles (the first nq state entries).
     Returns:
       [R, M·per_radius, dX].
@@ -131,7 +145,8 @@ def disturb(x0: jax.Array, radii: Sequence[float], per_radius: int, key: jax.Arr
     dtype = x0.dtype
     M = x0.shape[0]
     radii = jnp.asarray(radii, dtype)
-    d = jax.random.normal(key, (M, per_radius, nq), dtype)
+    d = jnp.asarray(fixed_draw(lambda: jax.random.normal(jax.random.PRNGKey(seed), (M, per_radius, nq),
+                                                         jnp.float64)), dtype)
     d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
     d = jnp.concatenate([d, jnp.zeros((M, per_radius, x0.shape[-1] - nq), dtype)], axis=-1)
     d = d.reshape(M * per_radius, -1)

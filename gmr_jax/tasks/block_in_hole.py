@@ -34,7 +34,7 @@ import numpy as np
 from gmr_jax import cost as cost_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax.config import Config, SimConfig, TaskConfig, check_nonnegative, check_number_tuple
-from gmr_jax.tasks import Task, at_rest, disturb, jaco
+from gmr_jax.tasks import Task, at_rest, disturb, fixed_draw, jaco
 from gmr_jax.tasks import reach as reach_task
 
 INITIAL = {
@@ -213,8 +213,7 @@ def _first_free(checker, candidates: np.ndarray, num: int, what: str) -> np.ndar
 def robustness_states(cfg: Config, num: int, seed: int, dtype=None) -> jax.Array:
     """[num, 12]: the reach study's random initial states from ``seed``, those in contact with
     the table or the fixture rejected (about 2 % are); velocities zero."""
-    with jax.ensure_compile_time_eval():  # host-side sampling, also when traced
-        candidates = np.asarray(reach_task.robustness_states(cfg, 2 * num + 16, seed, jnp.float64))
+    candidates = reach_task.random_states(2 * num + 16, seed)
     states = _first_free(collision_checker(cfg), candidates, num, "robustness states")
     return jnp.asarray(states, dtype=dtype or jnp.result_type(float))
 
@@ -224,8 +223,7 @@ def disturbed_states(cfg: Config, radii, per_radius: int, seed: int, dtype=None)
     collision-free states x0 + r·d (d uniform on the unit sphere of the joint angles)."""
     x0 = initial_states(cfg.task)
     pool = 8 * per_radius
-    with jax.ensure_compile_time_eval():
-        cand = np.asarray(disturb(jnp.asarray(x0, jnp.float64), radii, pool, jax.random.PRNGKey(seed), 6))
+    cand = fixed_draw(lambda: disturb(jnp.asarray(x0, jnp.float64), radii, pool, seed, 6))
     checker = collision_checker(cfg)
     M = x0.shape[0]
     out = [np.concatenate([_first_free(checker, cand[r, m * pool:(m + 1) * pool], per_radius,

@@ -144,14 +144,12 @@ def make_cost(cfg: Config) -> cost_lib.CostFn:
     return reach_cost(cfg.cost, target, cfg.task.T, ee_fn=ee_fn, wrapped=tasks.wrapped_entries(cfg.task))
 
 
-def robustness_states(cfg: Config, num: int, seed: int, dtype=None) -> jax.Array:
-    """Random initial states of the robustness test (gmr-method.md §2 and §3.2), from ``seed``.
+def random_states(num: int, seed: int) -> np.ndarray:
+    """[num, 12] float64: the reach study's random initial states from ``seed`` (drawn in
+    float64 whatever the run's precision, ``tasks.fixed_draw``).
 
     Joints 1, 4, 5, 6 uniform in [−π, π]; joints 2 and 3 uniform in π ± π/2 (the authors'
     reset distribution, "to prevent getting stuck in the ground"); velocities zero.
-
-    Returns:
-      [num, 12].
     """
     if num < 1:
         raise ValueError(f"num={num}: the number of robustness states must be positive")
@@ -160,15 +158,24 @@ def robustness_states(cfg: Config, num: int, seed: int, dtype=None) -> jax.Array
     hi = np.full(nq, math.pi)
     lo[1:3] = math.pi / 2
     hi[1:3] = 3 * math.pi / 2
-    q = jax.random.uniform(jax.random.PRNGKey(seed), (num, nq), minval=lo, maxval=hi)
-    x = jnp.concatenate([q, jnp.zeros_like(q)], axis=-1)
-    return x.astype(dtype or jnp.result_type(float))
+    return at_rest(tasks.fixed_draw(
+        lambda: jax.random.uniform(jax.random.PRNGKey(seed), (num, nq), jnp.float64, lo, hi)))
+
+
+def robustness_states(cfg: Config, num: int, seed: int, dtype=None) -> jax.Array:
+    """Random initial states of the robustness test (gmr-method.md §2 and §3.2), from ``seed``:
+    ``random_states`` in ``dtype``, the same states in every precision.
+
+    Returns:
+      [num, 12].
+    """
+    return jnp.asarray(random_states(num, seed), dtype or jnp.result_type(float))
 
 
 def disturbed_states(cfg: Config, radii, per_radius: int, seed: int, dtype=None) -> jax.Array:
     """The disturbance sweep's states [R, M·per_radius, 12] around the training conditions."""
     x0 = jnp.asarray(initial_states(cfg.task), dtype=dtype or jnp.result_type(float))
-    return disturb(x0, radii, per_radius, jax.random.PRNGKey(seed), len(TARGET))
+    return disturb(x0, radii, per_radius, seed, len(TARGET))
 
 
 TASK = Task(
