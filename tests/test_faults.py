@@ -175,6 +175,14 @@ def test_config_json_with_an_unknown_field(tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "alfa" in err and "config.json" in err, err
 
 
+def test_diagnose_with_an_unknown_override(tmp_path, capsys):
+    cfg = dataclasses.asdict(small("gmr"))
+    (tmp_path / "config.json").write_text(json.dumps({"seeds": [0], "runs": {"A/gmr": cfg}}))
+    assert diagnose.main([str(tmp_path), "--set", "sim__float_32=True"]) == cli.EXIT_FAILED
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "float_32" in err, err
+
+
 def test_signals_request_a_stop():
     with runner.Scheduler() as own:
         before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}

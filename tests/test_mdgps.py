@@ -191,3 +191,37 @@ def test_one_batched_rollout_equals_the_separate_rollouts():
     # the samples are the policy's noisy rollouts, not the controllers' (the row kinds differ)
     local = separate(state, jnp.asarray(True))[0]
     assert not np.allclose(got[0].U[:, :, 1:], local.U[:, :, 1:], atol=1e-6)
+
+
+def test_in_float32_rounds_inputs_and_widens_outputs():
+    def stage(a, b):
+        return a * b + 1.0, {"sum": jnp.sum(a), "n": jnp.arange(2)}
+
+    a, b = jnp.asarray([1 / 3, 2 / 3]), jnp.asarray([3.0, 1 / 7])
+    out = mdgps.in_float32("stage", stage)(a, b)
+    ref = stage(a.astype(jnp.float32), b.astype(jnp.float32))
+    assert out[0].dtype == out[1]["sum"].dtype == jnp.float64 and out[1]["n"].dtype == ref[1]["n"].dtype
+    np.testing.assert_array_equal(np.asarray(out[0]), np.asarray(ref[0]).astype(np.float64))
+    np.testing.assert_array_equal(np.asarray(out[1]["sum"]), np.float64(ref[1]["sum"]))
+    assert not np.array_equal(np.asarray(out[0]), np.asarray(stage(a, b)[0]))  # not float64 arithmetic
+    with pytest.raises(TypeError, match="mixes in float64"):
+        mdgps.in_float32("leaky", lambda x: x + jnp.ones(2))(a)  # jnp.ones: float64 under x64
+    with pytest.raises(ValueError, match="float64 run"):
+        mdgps.in_float32("stage", stage)(a.astype(jnp.float32), b)
+    with pytest.raises(ValueError, match="float32_stages"):
+        small("mdgps", float32_stages=("dynamics", "sim"))
+    with pytest.raises(ValueError, match="tuple"):
+        small("mdgps", float32_stages="dynamics")
+
+
+@pytest.mark.parametrize("algorithm", ["mdgps", "gmr"])
+def test_every_stage_traces_in_float32_inside_a_float64_iteration(algorithm):
+    """``in_float32`` raises when a stage mixes in float64 arithmetic: tracing the iteration with
+    every stage in float32 checks each stage's code follows its inputs' dtype."""
+    cfg = small(algorithm, float32_stages=config.FLOAT32_STAGES)
+    state = mdgps.init(cfg, jax.random.PRNGKey(0))
+    new_state, metrics = jax.eval_shape(lambda s, k: mdgps.iteration(cfg, s, k), state, jax.random.PRNGKey(1))
+    dtypes = {a.dtype for a in jax.tree_util.tree_leaves((new_state, metrics))
+              if jnp.issubdtype(a.dtype, jnp.floating)}
+    assert dtypes == {jnp.dtype(jnp.float64)}
+

@@ -327,6 +327,20 @@ def test_dtype_follows_input(s):
     assert sim.step(s, jnp.asarray(X_A), jnp.ones(6)).dtype == jnp.float64
 
 
+def test_float32_plant_inside_a_float64_run_is_the_float32_plant(s):
+    """``sim.float32`` (a diagnostic) steps MJX exactly as a float32 run does, inside float64."""
+    s32 = sim.make_sim(dataclasses.replace(s.config, backend="mjx", float32=True))
+    x, u = jnp.asarray(X_A), jnp.linspace(-0.5, 0.5, 6)  # within the torque limits: no clipping
+    y = sim.step(s32, x, u)
+    assert y.dtype == jnp.float64
+    with jax.enable_x64(False):  # a float32 run
+        y_run = sim.step(s32, jnp.asarray(X_A, jnp.float32), jnp.asarray(u, jnp.float32))
+    assert y_run.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(y), np.asarray(y_run).astype(np.float64))
+    with pytest.raises(ValueError, match="sim.float32"):
+        sim.make_sim(dataclasses.replace(s.config, backend="mujoco", float32=True))
+
+
 def test_divergence_is_flagged(s, zero_run):
     """A state C MuJoCo would silently reset (non-finite or beyond its 1e10 bound) comes back NaN."""
     x_bad = jnp.asarray(X_A).at[7].set(1e12)
