@@ -168,6 +168,10 @@ def parse_args(argv=None):
     p.add_argument("--seeds", type=int, default=1,
                    help="S-steps side by side (jax.vmap over params and data, as over seeds)")
     cli.add_precision_argument(p)
+    p.add_argument("--matmul-precision", default=mdgps.MATMUL_PRECISION,
+                   help="comma-separated jax.default_matmul_precision values to trace the S-step "
+                        "under (default: training's, %(default)s; e.g. TF32_TF32_F32_X3: three "
+                        "TF32 tensor-core products per product, about float32's accuracy)")
     p.add_argument("--out", help="write the results as JSON to this file")
     p.add_argument("--hlo-dir", help="also write each compiled program's HLO text here")
     p.add_argument("--profile", metavar="DIR", help="also run each S-step once under JAX's profiler "
@@ -179,14 +183,22 @@ def parse_args(argv=None):
         bad = [v for v in value.split(",") if v not in allowed]
         if bad:
             p.error(f"{flag}: {', '.join(bad)} not among {', '.join(allowed)}")
+    for value in args.matmul_precision.split(","):
+        try:
+            with jax.default_matmul_precision(value):
+                pass
+        except ValueError as err:
+            p.error(f"--matmul-precision {value!r}: {err}")
     return args
 
 
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
-            adam_entries: str = config.SStepConfig.adam_entries) -> tuple[dict, jax.Array]:
+            adam_entries: str = config.SStepConfig.adam_entries,
+            matmul_precision: str = mdgps.MATMUL_PRECISION) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration; returns its result row (and prints it) and
     the trained weights of the first timed S-step, [seeds, n]."""
-    tag = f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}" if impl == "packed" else "")
+    tag = (f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}" if impl == "packed" else "")
+           + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}"))
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
                        sstep__adam_entries=adam_entries)
     pol = policies.for_config(cfg)
@@ -201,7 +213,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))(
             p, d, jax.random.split(k, args.seeds)))
     t0 = time.perf_counter()
-    with jax.default_matmul_precision(mdgps.MATMUL_PRECISION):  # traced as training traces it
+    with jax.default_matmul_precision(matmul_precision):  # by default traced as training traces it
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
     compile_s = time.perf_counter() - t0
     hlo = compiled.as_text()
@@ -234,6 +246,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         profile = trace.kernel_summary(trace.device_events(rec[0]), steps)
         profile["device_lines"] = trace.device_lines(rec[0])
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
+           "matmul_precision": matmul_precision,
            "adam_entries": adam_entries if impl == "packed" else None,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
@@ -242,6 +255,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile}
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
             else f"{impl}/{adam_entries}" if impl == "packed" else impl)
+    if matmul_precision != mdgps.MATMUL_PRECISION:
+        name += f"/{matmul_precision}"
     print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:16s}: {run_s:7.3f} s for {steps} steps "
           f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
           f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
@@ -275,11 +290,12 @@ def main(argv=None) -> int:
                     variants = ([(int(w), d, None) for w in args.num_warps.split(",") for d in args.kernel_dot.split(",")]
                                 if impl == "kernel" else [(None, None, e) for e in args.adam_entries.split(",")]
                                 if impl == "packed" else [(None, None, None)])
-                    for warps, dot, entries in variants:
+                    variants = [v + (mp,) for v in variants for mp in args.matmul_precision.split(",")]
+                    for warps, dot, entries, matmul_precision in variants:
                         if warps:
                             gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
                         row, weights = measure(algorithm, scenario, unroll, impl, args, dtype,
-                                               entries or config.SStepConfig.adam_entries)
+                                               entries or config.SStepConfig.adam_entries, matmul_precision)
                         # every form trains the same weights to round-off: per seed, the largest
                         # difference from the first form listed relative to that seed's largest
                         # weight; the row reports the largest and the median over seeds
