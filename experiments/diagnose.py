@@ -129,7 +129,11 @@ def main(argv=None) -> int:
         if checkpoint.latest(ckpt) != cfg.iterations:
             print(f"{name}: no final checkpoint, skipped", file=sys.stderr)
             continue
-        rows, table = diagnose_run(ckpt, name, cfg, seeds)
+        try:
+            rows, table = diagnose_run(ckpt, name, cfg, seeds)
+        except checkpoint.CheckpointError as err:  # e.g. --set changed the network's shape
+            print(f"python -m experiments.diagnose: error: {name}: {err}", file=sys.stderr)
+            return 1
         results[name] = rows
         tables.append(table)
         counts = [int(np.sum(r["success"])) for r in rows]
