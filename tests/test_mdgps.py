@@ -97,10 +97,12 @@ def test_policy_iteration_jit_equals_eager(algorithm):
     assert_tolerances_small(jitted, tol, 1e-5)
     eager = mdgps.iteration(cfg, state, key, first)
     assert_trees_within(eager, jitted, tol)
-    # Without the flag the first iteration is recognised from the state's counter (the same
-    # lax.cond, its predicate computed in the program).
-    by_counter = jax.jit(mdgps.iteration, static_argnums=0)(cfg, state, key)
-    assert_trees_within(by_counter, jitted, tol)
+    if algorithm == "mdgps":
+        # Without the flag the first iteration is recognised from the state's counter (the same
+        # lax.cond, its predicate computed in the program; the policy plays no part, so one
+        # algorithm's compile of that program covers it).
+        by_counter = jax.jit(mdgps.iteration, static_argnums=0)(cfg, state, key)
+        assert_trees_within(by_counter, jitted, tol)
     assert np.all(np.asarray(jitted[1]["ok"]))
     assert np.isfinite(np.asarray(jitted[1]["final_state_mse_policy"])).all()
 
