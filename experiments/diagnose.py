@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import re
 import sys
 
 import jax
@@ -94,6 +95,14 @@ def diagnose_run(ckpt: pathlib.Path, name: str, cfg: config.Config, seeds: list[
     return rows, "\n".join(out_rows)
 
 
+def file_suffix(overrides: dict) -> str:
+    """The suffix of the output files for ``--set`` overrides, one path component whatever the
+    values hold (e.g. a scene path): "" without overrides, else "_sim__float32=True" and the like."""
+    if not overrides:
+        return ""
+    return "_" + re.sub(r"[^\w.=,+-]+", "-", "_".join(f"{k}={v}" for k, v in overrides.items()))
+
+
 HEADER = ("| run | seed | successes /50 | sat (ok / fail) | \\|x̃\\|₀ (ok / fail) | ‖∂u/∂x‖ (ok / fail) "
           "| \\|q̇_T\\| (ok / fail) | failures with joint error > 0.1, joints 1–6 | ‖u(x*)‖ | ρ at x* "
           "| input std of q (training) |\n|" + "---|" * 11)
@@ -142,7 +151,7 @@ def main(argv=None) -> int:
     text = ("# Robustness diagnostics" + (f" with{changed}" if changed else "") + "\n\nmedians over the "
             "successful / failed states\n\n" + HEADER + "\n" + "\n".join(tables) + "\n\n"
             + "\n".join(totals) + "\n")
-    suffix = "_" + "_".join(f"{k}={v}" for k, v in overrides.items()) if overrides else ""
+    suffix = file_suffix(overrides)
     (out / f"diagnostics{suffix}.json").write_text(json.dumps(results))
     (out / f"diagnostics{suffix}.md").write_text(text)
     print(text)

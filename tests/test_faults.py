@@ -19,6 +19,8 @@ import json
 import os
 import shutil
 import signal
+import subprocess
+import sys
 
 import jax
 import numpy as np
@@ -181,6 +183,26 @@ def test_diagnose_with_an_unknown_override(tmp_path, capsys):
     assert diagnose.main([str(tmp_path), "--set", "sim__float_32=True"]) == cli.EXIT_FAILED
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "float_32" in err, err
+
+
+def test_float32_stages_outside_a_float64_run_is_one_line(tmp_path):
+    # A process of its own: the CLI sets JAX's precision for the whole process.
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "experiments.reach", "--precision", "float32",
+                           "--set", "float32_stages=('dynamics',)", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    errors = [line for line in proc.stderr.splitlines() if "error" in line]  # JAX may warn too
+    assert proc.returncode == 2, proc.stderr
+    assert len(errors) == 1 and errors[0].startswith("python -m experiments.reach: error: --set float32_stages")
+    assert "--precision float64" in errors[0], proc.stderr
+    assert not out.exists()  # nothing written
+
+
+def test_diagnose_output_names_stay_in_the_folder():
+    assert diagnose.file_suffix({}) == ""
+    assert diagnose.file_suffix({"sim__float32": True}) == "_sim__float32=True"
+    suffix = diagnose.file_suffix({"sim__scene": "/some/dir/scene.xml", "mlp__hidden": (8, 8)})
+    assert "/" not in suffix and " " not in suffix and suffix.startswith("_sim__scene=")
 
 
 def test_signals_request_a_stop():
