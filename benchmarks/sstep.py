@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import hashlib
 import json
 import os
 import platform
@@ -38,6 +39,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from benchmarks import trace
 from experiments import cli
@@ -252,7 +254,9 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
-           "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile}
+           "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile,
+           # to tell whether two processes (e.g. other XLA_FLAGS) trained bit-identical weights
+           "weights_sha256": hashlib.sha256(np.asarray(weights).tobytes()).hexdigest()}
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
             else f"{impl}/{adam_entries}" if impl == "packed" else impl)
     if matmul_precision != mdgps.MATMUL_PRECISION:

@@ -507,9 +507,21 @@ def train(cfg: Config, key: Array):
         with jax.default_matmul_precision(MATMUL_PRECISION):
             x0 = tasks.initial_states(cfg.task, state.eta.dtype)
             samples, curve = rollout_stage(cfg, state, x0, _stage_keys(k)[0], first)
-            trained = lambda: update(cfg, state, samples, k, first)  # noqa: E731
-            skipped = lambda: (state, _zeros_like_tree(jax.eval_shape(trained)[1]))  # noqa: E731
-            new_state, metrics = jax.lax.cond(last, skipped, trained)
+            metric_shapes = []
+
+            def trained():
+                new_state, metrics = update(cfg, state, samples, k, first)
+                metric_shapes.append(jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), metrics))
+                return new_state, metrics
+
+            def skipped():
+                # The metrics' shapes from tracing ``trained`` (``lax.cond`` traces its first
+                # branch first); tracing ``update`` a second time only to learn them would cost
+                # as much Python tracing as the update itself.
+                shapes = metric_shapes[0] if metric_shapes else jax.eval_shape(trained)[1]
+                return state, _zeros_like_tree(shapes)
+
+            new_state, metrics = jax.lax.cond(jnp.logical_not(last), trained, skipped)
         return new_state, (metrics, curve)
 
     final, (metrics, curve) = jax.lax.scan(body, init(cfg, k_init), (keys, steps == 0, steps == K))

@@ -107,6 +107,19 @@ def test_policy_iteration_jit_equals_eager(algorithm):
     assert np.isfinite(np.asarray(jitted[1]["final_state_mse_policy"])).all()
 
 
+def test_train_traces_the_update_once(monkeypatch):
+    # ``train``'s last scan step skips the update through a ``lax.cond`` whose skipped branch
+    # needs the update's metric shapes; they come from the traced branch, not from tracing the
+    # update again (that Python tracing is a large part of the program's lowering). Tracing only.
+    calls = []
+    update = mdgps.update
+    monkeypatch.setattr(mdgps, "update", lambda *a, **k: calls.append(1) or update(*a, **k))
+    cfg = small("mdgps")
+    final, history = jax.eval_shape(lambda k: mdgps.train(cfg, k), jax.random.PRNGKey(0))
+    assert len(calls) == 1
+    assert history["sample_cost"].shape[0] == cfg.iterations
+
+
 @pytest.fixture(scope="module")
 def vmapped_mdgps_runs():
     cfg = small("mdgps")
