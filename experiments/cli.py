@@ -110,6 +110,12 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--devices", type=_positive_int, default=None,
                    help="split the seeds over this many local devices (default: all of them; a "
                         "seed count they do not divide is padded, the padding dropped)")
+    p.add_argument("--cpu-runs", default="auto", metavar="auto|none|all|SCENARIO/ALGORITHM,…",
+                   help="runs that compute on the host CPU instead of the GPU (default: %(default)s: "
+                        "on a GPU with one seed, the MLP policy's runs (mdgps) with C MuJoCo, "
+                        "whose S-steps are faster on the host than on an H100 and leave the GPU to "
+                        "the GMR runs; benchmarks/RESULTS.md). Ignored without a GPU; the choice "
+                        "is written to config.json")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -166,6 +172,41 @@ def resolve_adam_entries(args) -> dict:
     return {"sstep__adam_entries": "trained"} if per_device >= TRAINED_ENTRIES_MIN_SEEDS else {}
 
 
+# Algorithms whose runs ``--cpu-runs auto`` places on the host CPU when a GPU trains one seed:
+# the MLP's S-step takes 37 µs per Adam step on a 2-core CPU against 50-55 µs on an H100 (where
+# each of its kernels costs ~1.7 µs however small), and the default run's MDGPS runs finish in
+# 20-26 s on the host while the GMR runs, alone on the GPU, end 14-15 s sooner than when all
+# four share it (benchmarks/RESULTS.md, sixteenth session). GMR's S-step is three times faster
+# on the GPU; "lqr" was not measured.
+CPU_RUN_ALGORITHMS = ("mdgps",)
+
+
+def resolve_cpu_runs(args) -> dict:
+    """``--cpu-runs`` → {(scenario, algorithm): "cpu"} for the runs to place on the host CPU
+    (``runner.run_all``'s ``platforms``): none without a GPU (everything is on the host then),
+    "auto" as ``CPU_RUN_ALGORITHMS`` says for one seed with the C MuJoCo backend, or the named
+    runs. Raises ValueError for a name that is not one of the study's runs."""
+    import jax
+
+    value = args.cpu_runs.strip()
+    if value == "none" or jax.default_backend() == "cpu":
+        chosen = []
+    elif value == "auto":
+        chosen = [key for key, cfg in args.configs.items()
+                  if args.seeds == 1 and cfg.algorithm in CPU_RUN_ALGORITHMS and cfg.sim.backend == "mujoco"]
+    elif value == "all":
+        chosen = list(args.configs)
+    else:
+        names = {f"{s}/{a}": (s, a) for s, a in args.configs}
+        given = [n.strip() for n in value.split(",") if n.strip()]
+        unknown = [n for n in given if n not in names]
+        if unknown:
+            raise ValueError(f"--cpu-runs: {', '.join(unknown)} not among this study's runs "
+                             f"({', '.join(names)}); or use auto, none, all")
+        chosen = [names[n] for n in given]
+    return {key: "cpu" for key in chosen}
+
+
 def parse_args(task_name: str, argv=None, description: str | None = None) -> argparse.Namespace:
     """The arguments, with ``args.configs``: {(scenario, algorithm): Config}. Every setting is
     validated by the configuration itself; a bad one ends argparse's way (usage, exit 2)."""
@@ -192,6 +233,10 @@ def parse_args(task_name: str, argv=None, description: str | None = None) -> arg
         p.error(str(err))
     if not args.configs:
         p.error("no runs: give at least one --scenario and one --algorithm")
+    try:
+        args.platforms = resolve_cpu_runs(args)
+    except ValueError as err:
+        p.error(str(err))
     return args
 
 
@@ -281,6 +326,9 @@ def run_study(args, t_start: float) -> int:
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     used = jax.local_devices()[: args.devices or len(jax.local_devices())]
     device = f"{used[0].platform}: {used[0].device_kind}" + (f" × {len(used)}" if len(used) > 1 else "")
+    on_cpu = [f"{s}/{a}" for (s, a) in args.configs if (s, a) in args.platforms]
+    if on_cpu:
+        device += f"; {', '.join(on_cpu)} on the host CPU"
     print(f"gmr-jax {args.task.name} study -> {out}  (device {device}, seeds {seeds})")
     (out / "config.json").write_text(json.dumps({
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
@@ -288,6 +336,7 @@ def run_study(args, t_start: float) -> int:
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
+        "cpu_runs": on_cpu,
         "python": platform.python_version(),
         "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in args.configs.items()}}, indent=2))
@@ -300,7 +349,7 @@ def run_study(args, t_start: float) -> int:
         t_runs = time.perf_counter()
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
-                              stability=not args.no_stability)
+                              stability=not args.no_stability, platforms=args.platforms)
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()

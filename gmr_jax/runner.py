@@ -126,10 +126,11 @@ class Scheduler:
         down). Waiters get a slot in the order they asked (``threading.Condition`` is FIFO), so
         the iteration programs traced first compile before the evaluation programs that runs
         request when they start training.
-      programs: compiled programs per (kind, config, number of seeds): a resumed, extended or
-        repeated run of the same configuration reuses its executables.
+      programs: compiled programs per (kind, config, number of seeds, platform and devices): a
+        resumed, extended or repeated run of the same configuration reuses its executables.
       mesh: the 1-D device mesh the runs split their seeds over (``devices``: the first n local
-        devices; default all, see :mod:`gmr_jax.sharding`).
+        devices; default all, see :mod:`gmr_jax.sharding`); a run placed on another platform
+        (``run``'s ``platform``) uses :meth:`mesh_for` it.
       pool: background threads (initial states, robustness compilation, the caller's work).
       stop: set by :meth:`request_stop` (e.g. from a signal handler); runs end after the
         iteration in flight.
@@ -141,11 +142,25 @@ class Scheduler:
         self.tracing = TracingTurns()
         self.compile_slots = threading.BoundedSemaphore(compile_jobs)
         self.programs: dict = {}
+        self._meshes: dict = {}
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gmr-jax")
         self.stop = threading.Event()
 
     def request_stop(self) -> None:
         self.stop.set()
+
+    def mesh_for(self, platform: str | None):
+        """The mesh of runs placed on ``platform`` ("cpu": the host; None: :attr:`mesh`). A
+        platform other than the default backend's gets all its local devices (the host's CPU
+        is one device)."""
+        if platform is None or platform == self.mesh.devices.flat[0].platform:
+            return self.mesh
+        if platform not in self._meshes:
+            try:
+                self._meshes[platform] = sharding.seed_mesh(None, platform)
+            except RuntimeError as err:
+                raise ValueError(f"platform {platform!r}: no such devices here ({err})") from err
+        return self._meshes[platform]
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -249,30 +264,42 @@ def program_config(cfg: config.Config) -> config.Config:
 _TIMER_PREFIX = {"step": "", "robustness": "robustness_"}
 
 
-def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Scheduler):
+def _platform(mesh) -> str:
+    return mesh.devices.flat[0].platform
+
+
+def _program_name(kind: str, cfg: config.Config, num_seeds: int, mesh) -> tuple:
+    return kind, program_config(cfg), num_seeds, _platform(mesh), mesh.size
+
+
+def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh):
     """The scheduler's compiled ``kind`` program ("step" or "robustness") for ``cfg`` and this
-    seed batch, or else the program traced and lowered (timed; compile it with
-    :func:`_compiled`). ``args``: the program's array arguments (or their shapes), seeds first."""
-    name = (kind, program_config(cfg), jax.tree_util.tree_leaves(args[0])[0].shape[0])
+    seed batch on ``mesh``, or else the program traced and lowered (timed; compile it with
+    :func:`_compiled`). ``args``: the program's array arguments (or their shapes), seeds first.
+    It is traced and lowered with ``mesh``'s first device as JAX's default device, so that
+    choices made while tracing (``sharding.target_platform``) follow the run's platform, and
+    arguments given as shapes are placed there."""
+    name = _program_name(kind, cfg, jax.tree_util.tree_leaves(args[0])[0].shape[0], mesh)
     if name in scheduler.programs:
         return scheduler.programs[name]
     prefix = _TIMER_PREFIX[kind]
-    with timer(f"{prefix}trace_s"):
-        traced = _program(kind, scheduler.mesh).trace(program_config(cfg), *args)
-    with timer(f"{prefix}lower_s"):
-        return traced.lower()
+    with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
+        with timer(f"{prefix}trace_s"):
+            traced = _program(kind, mesh).trace(program_config(cfg), *args)
+        with timer(f"{prefix}lower_s"):
+            return traced.lower()
 
 
 def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Timer,
-              scheduler: Scheduler, slot: bool):
-    """``program`` compiled (in a compile slot if ``slot``) and kept by the scheduler; an
-    already compiled one is returned as it is."""
+              scheduler: Scheduler, slot: bool, mesh):
+    """``program`` (for ``mesh``) compiled (in a compile slot if ``slot``) and kept by the
+    scheduler; an already compiled one is returned as it is."""
     if not isinstance(program, jax.stages.Lowered):
         return program
     with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
-        options = sharding.compiler_options(sharding.seeds_per_device(num_seeds, scheduler.mesh.size))
+        options = sharding.compiler_options(sharding.seeds_per_device(num_seeds, mesh.size), _platform(mesh))
         compiled = program.compile(compiler_options=options or None)
-    scheduler.programs[(kind, program_config(cfg), num_seeds)] = compiled
+    scheduler.programs[_program_name(kind, cfg, num_seeds, mesh)] = compiled
     return compiled
 
 
@@ -350,7 +377,8 @@ def check_fresh(run_dirs) -> None:
 
 def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after: int | None = None,
         progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
-        ticket: int | None = None, label: str = "", stability: bool = True) -> dict:
+        ticket: int | None = None, label: str = "", stability: bool = True,
+        platform: str | None = None) -> dict:
     """Train ``cfg`` for ``seeds`` in parallel into ``run_dir``; checkpoint after every iteration.
 
     Args:
@@ -367,6 +395,9 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
       label: the run's name in progress events.
       stability: also measure the trained policies' closed-loop stability
         (``gmr_jax.stability``) along the robustness rollouts.
+      platform: where the run computes: None for the scheduler's devices, or another platform
+        of this process, e.g. "cpu" for the host (``Scheduler.mesh_for``). Its programs are
+        traced and compiled for that platform (the S-step's form, compiler options).
     Returns:
       dict with ``history`` (stacked metrics, leading axes [iteration, seed, ...]),
       ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies once every
@@ -382,7 +413,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     if scheduler is None:
         with Scheduler() as own:
             return run(cfg, seeds, run_dir, resume=resume, stop_after=stop_after, progress_fn=progress_fn,
-                       scheduler=own, ticket=ticket, label=label, stability=stability)
+                       scheduler=own, ticket=ticket, label=label, stability=stability, platform=platform)
     report = (lambda text: progress_fn({"run": label, "message": text})) if progress_fn else (lambda text: None)
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
@@ -390,7 +421,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         check_fresh([run_dir])
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({"seeds": list(seeds), "config": config.to_dict(cfg)}, indent=1))
-    layout = _Layout(scheduler.mesh, len(seeds))
+    layout = _Layout(scheduler.mesh_for(platform), len(seeds))
     k_init, it_keys = (layout.device(k) for k in seed_keys(cfg, seeds))
     meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
     t0 = time.perf_counter()
@@ -432,8 +463,11 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
 
     def make_initial():
         with timer("init_s"):
-            options = sharding.compiler_options(sharding.seeds_per_device(k_init.shape[0], layout.mesh.size))
-            compiled = init_program.lower(program_config(cfg), k_init).compile(compiler_options=options or None)
+            options = sharding.compiler_options(sharding.seeds_per_device(k_init.shape[0], layout.mesh.size),
+                                                _platform(layout.mesh))
+            with jax.default_device(layout.mesh.devices.flat[0]):
+                lowered = init_program.lower(program_config(cfg), k_init)
+            compiled = lowered.compile(compiler_options=options or None)
             return jax.block_until_ready(compiled(k_init))
     state_future = scheduler.pool.submit(make_initial)
     num = k_init.shape[0]
@@ -449,16 +483,17 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
             report(f"resumed from iteration {len(history)}")
             state = layout.device(state)
         if len(history) < stop:
-            step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler)
+            step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler,
+                            layout.mesh)
         if policies.spec_for(cfg) is not None and stop == cfg.iterations:
-            robustness = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler)
+            robustness = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler, layout.mesh)
     if step is not None:
-        step = _compiled("step", cfg, num, step, timer, scheduler, slot=True)
+        step = _compiled("step", cfg, num, step, timer, scheduler, slot=True, mesh=layout.mesh)
     if robustness is not None:
         # In a slot: beside training, but after the other runs' iteration programs, which then
         # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
         robustness = scheduler.pool.submit(_compiled, "robustness", cfg, num, robustness, timer, scheduler,
-                                           slot=True)
+                                           slot=True, mesh=layout.mesh)
     return (state_future.result() if state is None else state), history, step, robustness
 
 
@@ -550,7 +585,7 @@ def run_folder(out, scenario: str, algorithm: str) -> pathlib.Path:
 
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
             scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None,
-            stability: bool = True) -> dict:
+            stability: bool = True, platforms: dict | None = None) -> dict:
     """Train several configurations side by side (threads), each into ``run_folder(out, …)``.
 
     Args:
@@ -563,6 +598,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       scheduler: default a private one with 2 compile jobs.
       progress_fn: see the module docstring; events carry "scenario/algorithm" as ``run``.
       stability: see :func:`run`.
+      platforms: {(scenario, algorithm): platform} for runs placed elsewhere than on the
+        scheduler's devices (:func:`run`'s ``platform``, e.g. "cpu"); the others stay there.
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:
@@ -573,7 +610,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
-                           progress_fn=progress_fn, stability=stability)
+                           progress_fn=progress_fn, stability=stability, platforms=platforms)
     # The longest runs (a policy's S-step is the slowest, more conditions mean more data) trace
     # first and reach the device first.
     order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
@@ -581,7 +618,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     with concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool:
         futures = {key: pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                     progress_fn=progress_fn, scheduler=scheduler, ticket=i,
-                                    label=f"{key[0]}/{key[1]}", stability=stability)
+                                    label=f"{key[0]}/{key[1]}", stability=stability,
+                                    platform=(platforms or {}).get(key))
                    for i, key in enumerate(order)}
         try:
             return {key: futures[key].result() for key in configs}

@@ -27,9 +27,21 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 AXIS = "seeds"
 
 
-def seed_mesh(devices: int | None = None) -> Mesh:
-    """A 1-D mesh named ``"seeds"`` over the first ``devices`` local devices (default: all)."""
-    available = jax.local_devices()
+def target_platform() -> str:
+    """The platform that the program being traced will run on: that of ``jax.default_device``
+    where one is set (the runner traces a run placed on the host CPU under it), else JAX's
+    default backend. Trace-time choices that depend on the hardware (the S-step's form, the
+    physics backend "auto") follow it."""
+    device = jax.config.jax_default_device
+    if device is None:
+        return jax.default_backend()
+    return device if isinstance(device, str) else device.platform
+
+
+def seed_mesh(devices: int | None = None, platform: str | None = None) -> Mesh:
+    """A 1-D mesh named ``"seeds"`` over the first ``devices`` local devices (default: all) of
+    ``platform`` (default: JAX's default backend; e.g. "cpu" for the host)."""
+    available = jax.local_devices(backend=platform)
     n = len(available) if devices is None else devices
     if not (isinstance(n, int) and 1 <= n <= len(available)):
         raise ValueError(f"devices={devices!r}: must be between 1 and the {len(available)} local "
@@ -110,25 +122,27 @@ def wanted_compiler_options(backend: str, seeds_per_device: int, xla_flags: str)
 
 
 @functools.lru_cache(maxsize=None)
-def _accepted(options: tuple) -> dict:
-    """``options`` if this XLA compiles with them, else {} (an unknown option in ``XLA_FLAGS``
-    would abort the process; as a compile option it is only refused)."""
+def _accepted(options: tuple, platform: str) -> dict:
+    """``options`` if this XLA compiles with them for ``platform``, else {} (an unknown option in
+    ``XLA_FLAGS`` would abort the process; as a compile option it is only refused)."""
     if not options:
         return {}
+    x = jax.device_put(jnp.zeros((), jnp.float32), jax.local_devices(backend=platform)[0])
     try:
-        jax.jit(lambda x: x + 1).lower(jnp.zeros((), jnp.float32)).compile(compiler_options=dict(options))
+        jax.jit(lambda y: y + 1).lower(x).compile(compiler_options=dict(options))
     except jax.errors.JaxRuntimeError:
         return {}
     return dict(options)
 
 
-def compiler_options(seeds_per_device: int = 1) -> dict:
+def compiler_options(seeds_per_device: int = 1, platform: str | None = None) -> dict:
     """XLA options for compiling the programs of :func:`seed_program` with ``seeds_per_device``
-    seeds on each device of this backend (the runner passes them to ``Lowered.compile``; a
-    ``jax.jit`` option would refuse nested tracing): :func:`wanted_compiler_options`, where
-    this XLA knows them."""
-    wanted = wanted_compiler_options(jax.default_backend(), seeds_per_device, os.environ.get("XLA_FLAGS", ""))
-    return _accepted(tuple(sorted(wanted.items())))
+    seeds on each device of ``platform`` (default: JAX's default backend; the runner passes
+    them to ``Lowered.compile``; a ``jax.jit`` option would refuse nested tracing):
+    :func:`wanted_compiler_options`, where this XLA knows them."""
+    platform = jax.default_backend() if platform is None else platform
+    wanted = wanted_compiler_options(platform, seeds_per_device, os.environ.get("XLA_FLAGS", ""))
+    return _accepted(tuple(sorted(wanted.items())), platform)
 
 
 def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:

@@ -198,15 +198,17 @@ def _chain(m: mujoco.MjModel, site: str = EE_SITE) -> _Chain:
 
 def _resolve_backend(backend: str) -> str:
     if backend == "auto":
-        return "mjx" if jax.default_backend() == "gpu" else "mujoco"
+        from gmr_jax import sharding  # noqa: PLC0415 (sharding needs nothing of this module)
+
+        return "mjx" if sharding.target_platform() == "gpu" else "mujoco"
     if backend not in ("mjx", "mujoco"):
         raise ValueError(f"sim.backend={backend!r}: allowed values are ('auto', 'mjx', 'mujoco')")
     return backend
 
 
-@functools.lru_cache(maxsize=None)
 def make_sim(cfg: SimConfig) -> Sim:
-    """Load and compile the scene of ``cfg`` (cached per config, so cheap at trace time).
+    """Load and compile the scene of ``cfg`` (cached per config and resolved backend, so cheap at
+    trace time; backend "auto" is MJX when tracing for a GPU, ``sharding.target_platform``).
 
     The config's physics timestep (control_dt / substeps) replaces the MJCF's; with
     ``gravity_compensation=False`` every body's ``gravcomp`` is set to 0; with
@@ -216,11 +218,15 @@ def make_sim(cfg: SimConfig) -> Sim:
       FileNotFoundError: the MJCF file does not exist (the message names it).
       MJCFError: the file is malformed or lacks the joints/actuators/site the plant needs.
     """
+    return _make_sim(cfg, _resolve_backend(cfg.backend))
+
+
+@functools.lru_cache(maxsize=None)
+def _make_sim(cfg: SimConfig, backend: str) -> Sim:
     if not isinstance(cfg.substeps, int) or cfg.substeps < 1:
         raise ValueError(f"sim.substeps={cfg.substeps!r}: must be a positive integer")
     if not cfg.control_dt > 0:
         raise ValueError(f"sim.control_dt={cfg.control_dt!r}: must be a positive number")
-    backend = _resolve_backend(cfg.backend)
     if cfg.float32 and backend != "mjx":
         raise ValueError("sim.float32 steps MJX in float32; C MuJoCo computes in float64 only: "
                          "use --backend mjx or leave sim.float32 off")

@@ -35,7 +35,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jax import lax
 
-from gmr_jax import linalg
+from gmr_jax import linalg, sharding
 from gmr_jax.adam import adam_corrections, adam_update  # noqa: F401 (part of this module's API)
 from gmr_jax.config import SStepConfig
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
@@ -103,7 +103,9 @@ IMPLS = ("packed", "reference", "kernel")
 
 
 def default_impl() -> str:
-    """The S-step form for JAX's default backend: "packed" on an accelerator, "reference" on a CPU.
+    """The S-step form for the platform being traced for (``sharding.target_platform``: JAX's
+    default backend, or the host CPU for a run the runner placed there): "packed" on an
+    accelerator, "reference" on a CPU.
 
     On a GPU a minibatch step is bound by its number of dependent kernels, which the packed form
     cuts. On a CPU
@@ -111,7 +113,7 @@ def default_impl() -> str:
     three times GMR's weights in Adam's update and in the single weight-gradient product) costs
     more than the operations it saves (benchmarks/sstep.py measures both).
     """
-    return "reference" if jax.default_backend() == "cpu" else "packed"
+    return "reference" if sharding.target_platform() == "cpu" else "packed"
 
 
 def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStepConfig = SStepConfig(),

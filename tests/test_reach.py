@@ -58,6 +58,32 @@ def test_adam_on_the_trained_entries_from_256_seeds_per_gpu(monkeypatch):
     assert entries(["--seeds", str(n), "--devices", "1", "--set", "sstep__adam_entries='all'"]) == {"all"}
 
 
+def test_cpu_runs_on_a_gpu(monkeypatch, capsys):
+    """--cpu-runs: on a GPU with one seed, "auto" places the MLP runs (C MuJoCo) on the host CPU
+    and leaves GMR on the GPU; more seeds or MJX keep every run on the GPU; "none", "all" and a
+    list of runs choose; a name that is not a run of the study is refused in one line. Without
+    a GPU nothing is placed (everything is on the host already)."""
+    import jax
+
+    def placed(argv):
+        return sorted(f"{s}/{a}" for s, a in cli.parse_args("reach", argv).platforms)
+
+    assert placed(["--backend", "mujoco"]) == []  # the test machine's CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert placed(["--backend", "mujoco"]) == ["A/mdgps", "AB/mdgps"]
+    assert placed(["--backend", "mujoco", "--seeds", "2"]) == []
+    assert placed(["--backend", "mjx"]) == []
+    assert placed(["--backend", "mujoco", "--cpu-runs", "none"]) == []
+    assert placed(["--backend", "mujoco", "--cpu-runs", "all"]) == ["A/gmr", "A/mdgps", "AB/gmr", "AB/mdgps"]
+    assert placed(["--backend", "mujoco", "--cpu-runs", "A/gmr, AB/mdgps"]) == ["A/gmr", "AB/mdgps"]
+    with pytest.raises(SystemExit) as exit_info:
+        cli.parse_args("reach", ["--backend", "mujoco", "--cpu-runs", "A/gmr,B/lqr"])
+    assert exit_info.value.code == cli.EXIT_USAGE
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].endswith("--cpu-runs: B/lqr not among this study's runs (A/gmr, A/mdgps, AB/gmr, "
+                            "AB/mdgps); or use auto, none, all")
+
+
 def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
     """Without --resume, an --out that holds a run's checkpoints is refused before anything is
     written: the earlier run's config.json and checkpoints stay as they were."""

@@ -129,3 +129,22 @@ def test_tracing_turns_follow_the_tickets():
             raise RuntimeError("trace failed")
     with turns(1):
         pass
+
+
+def test_programs_are_compiled_for_the_mesh_of_their_run(scheduler):
+    """A run placed on other devices than the default one (``run``'s ``platform``: the host CPU
+    beside a GPU) gets programs compiled for its mesh, also where every argument is given as a
+    shape (the evaluation program): here a mesh of the fourth CPU device."""
+    if len(jax.local_devices()) < 4:
+        pytest.skip("needs four devices (XLA_FLAGS=--xla_force_host_platform_device_count=4)")
+    cfg = small("mdgps", task__T=4)
+    mesh = jax.make_mesh((1,), ("seeds",), devices=jax.local_devices()[3:4])
+    params = jax.vmap(lambda k: runner.mdgps.init(cfg, k).policy.params)(jax.random.PRNGKey(0)[None])
+    shapes = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), params)
+    timer = runner.Timer()
+    lowered = runner._lowered("robustness", cfg, (shapes,), timer, scheduler, mesh)
+    program = runner._compiled("robustness", cfg, 1, lowered, timer, scheduler, slot=False, mesh=mesh)
+    layout = runner._Layout(mesh, 1)
+    out = runner.evaluate_robustness(cfg, layout.device(params), timer, program, layout)
+    assert np.isfinite(out["robustness"]["mse"]).all()
+    assert {d.id for d in program.input_shardings[0][0].net["params"]["Dense_0"]["bias"].device_set} == {3}

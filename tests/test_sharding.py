@@ -137,6 +137,36 @@ def test_compiler_options_by_backend_and_seeds_per_device():
     assert wanted("tpu", 1, "") == {}
 
 
+def test_trace_time_choices_follow_the_default_device():
+    """A run the runner places on another platform is traced under ``jax.default_device`` of
+    that platform: the S-step's form and the physics backend "auto" follow it (a GPU process's
+    host-CPU runs trace the CPU's choices, and the other way round), and the simulator cache
+    keeps one plant per resolved backend."""
+    from gmr_jax import config, sim, sstep
+
+    here = jax.default_backend()
+    assert sharding.target_platform() == here
+    for platform, impl, backend in (("gpu", "packed", "mjx"), ("cpu", "reference", "mujoco")):
+        with jax.default_device(platform):  # only read while tracing, so no such device is needed
+            assert sharding.target_platform() == platform
+            assert sstep.default_impl() == impl
+            assert sim.make_sim(config.SimConfig()).backend == backend
+    assert sharding.target_platform() == here
+    assert sim.make_sim(config.SimConfig()).backend == ("mjx" if here == "gpu" else "mujoco")
+
+
+def test_scheduler_mesh_for_a_platform():
+    """The default backend's platform (or None) is the scheduler's own mesh; a platform this
+    process does not have is refused in one line."""
+    from gmr_jax import runner
+
+    with runner.Scheduler() as s:
+        assert s.mesh_for(None) is s.mesh
+        assert s.mesh_for(jax.default_backend()) is s.mesh
+        with pytest.raises(ValueError, match="platform 'tpu': no such devices here"):
+            s.mesh_for("tpu")
+
+
 def test_one_seed_runs_the_plain_program_and_more_seeds_the_vmapped_one():
     """``over_seed_axis``: a block of one seed traces ``fn`` itself on the squeezed arguments (a
     ``lax.cond`` on a seed's own data stays a conditional, where ``vmap`` turns it into a select of
