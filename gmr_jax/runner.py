@@ -130,7 +130,7 @@ class Scheduler:
         resumed, extended or repeated run of the same configuration reuses its executables.
       mesh: the 1-D device mesh the runs split their seeds over (``devices``: the first n local
         devices; default all, see :mod:`gmr_jax.sharding`); a run placed on another platform
-        (``run``'s ``platform``) uses :meth:`mesh_for` it.
+        (``run``'s ``platform``) uses that platform's mesh, :meth:`mesh_for`.
       pool: background threads (initial states, robustness compilation, the caller's work).
       stop: set by :meth:`request_stop` (e.g. from a signal handler); runs end after the
         iteration in flight.
@@ -417,11 +417,11 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     report = (lambda text: progress_fn({"run": label, "message": text})) if progress_fn else (lambda text: None)
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
+    layout = _Layout(scheduler.mesh_for(platform), len(seeds))  # an unknown platform: before any write
     if not resume:
         check_fresh([run_dir])
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({"seeds": list(seeds), "config": config.to_dict(cfg)}, indent=1))
-    layout = _Layout(scheduler.mesh_for(platform), len(seeds))
     k_init, it_keys = (layout.device(k) for k in seed_keys(cfg, seeds))
     meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
     t0 = time.perf_counter()

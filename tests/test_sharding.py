@@ -155,16 +155,19 @@ def test_trace_time_choices_follow_the_default_device():
     assert sim.make_sim(config.SimConfig()).backend == ("mjx" if here == "gpu" else "mujoco")
 
 
-def test_scheduler_mesh_for_a_platform():
+def test_scheduler_mesh_for_a_platform(tmp_path):
     """The default backend's platform (or None) is the scheduler's own mesh; a platform this
-    process does not have is refused in one line."""
-    from gmr_jax import runner
+    process does not have is refused in one line, and a run asked onto it writes nothing."""
+    from gmr_jax import config, runner
 
     with runner.Scheduler() as s:
         assert s.mesh_for(None) is s.mesh
         assert s.mesh_for(jax.default_backend()) is s.mesh
         with pytest.raises(ValueError, match="platform 'tpu': no such devices here"):
             s.mesh_for("tpu")
+        with pytest.raises(ValueError, match="platform 'tpu'"):
+            runner.run(config.reach("A", "lqr"), [0], tmp_path / "run", scheduler=s, platform="tpu")
+        assert not (tmp_path / "run").exists()
 
 
 def test_one_seed_runs_the_plain_program_and_more_seeds_the_vmapped_one():
