@@ -9,6 +9,7 @@ XSpace back with ``jax.profiler.ProfileData`` and summarises it. Used by ``bench
 
 from __future__ import annotations
 
+import bisect
 import collections
 import contextlib
 import glob
@@ -94,6 +95,28 @@ def kernel_summary(events: list[tuple[str, int, int]], steps: int, top: int = 12
         "top": [{"name": n[:120], "count": c, "us_per_step": t / steps / 1e3}
                 for n, (c, t) in sorted(by_name.items(), key=lambda kv: -kv[1][1])[:top]],
     }
+
+
+def host_windows(profile, prefix: str) -> list[tuple[str, int, int]]:
+    """[(name, start ns, duration ns)] of the host trace annotations whose name starts with
+    ``prefix`` (e.g. ``jax.profiler.TraceAnnotation``s that a benchmark put around its steps),
+    sorted by start, on the clock of :func:`device_events`."""
+    windows = [(ev.name, ev.start_ns, ev.duration_ns) for plane in profile.planes if plane.name.startswith("/host:")
+               for line in plane.lines for ev in line.events if ev.name.startswith(prefix)]
+    return sorted(windows, key=lambda w: w[1])
+
+
+def split_by_windows(events: list[tuple[str, int, int]], windows: list[tuple[str, int, int]]) -> dict:
+    """{window name: the events that start inside that window}; events inside no window are
+    listed under None. Windows must not overlap (a benchmark that waits for each step's results
+    before starting the next guarantees that its device work lies inside its window)."""
+    out = collections.defaultdict(list)
+    starts = [w[1] for w in windows]
+    for ev in events:
+        i = bisect.bisect_right(starts, ev[1]) - 1
+        name = windows[i][0] if i >= 0 and ev[1] < windows[i][1] + windows[i][2] else None
+        out[name].append(ev)
+    return dict(out)
 
 
 def host_event_totals(profile, top: int = 40) -> list[dict]:

@@ -7,7 +7,8 @@ configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples
 T = 80, 10 iterations), compiled with the XLA options the runner uses for that many seeds per
 device (``sharding.compiler_options``; ``--compiler-options none`` for XLA's defaults). Compile
 time (lower + compile) and run time (median over repeats, after compilation) are reported separately, with the final-state MSE reached, so that speed is never
-quoted for a run that did not learn. Example::
+quoted for a run that did not learn; ``results_sha256`` (of the metrics history and the final
+state) tells whether two runs, e.g. of two versions of the code, computed the same bits. Example::
 
     python -m benchmarks.train --algorithm mdgps --seeds 1,8,64,256 --out train.json
 """
@@ -15,6 +16,7 @@ quoted for a run that did not learn. Example::
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -86,7 +88,10 @@ def main(argv=None) -> int:
         curve = "final_state_mse_policy" if "final_state_mse_policy" in hist else "final_state_mse_lqr"
         mse = np.asarray(hist[curve])[:, -1].max(axis=-1)  # [seeds], worst condition, last iteration
         ok = bool(np.all(np.asarray(hist["ok"])))
-        row = {"seeds": n, "compiler_options": options, "compile_s": compile_s, "run_s": statistics.median(times),
+        digest = hashlib.sha256()
+        for leaf in jax.tree_util.tree_leaves((hist, sharding.unpad(final, n))):
+            digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
+        row = {"seeds": n, "results_sha256": digest.hexdigest(), "compiler_options": options, "compile_s": compile_s, "run_s": statistics.median(times),
                "curve": curve, "final_mse_median": float(np.median(mse)),
                "success_0.01": int((mse < cfg.task.success_threshold).sum()), "all_ok": ok}
         rows.append(row)

@@ -409,7 +409,7 @@ def _curve_metrics(cfg: Config, out: Trajectories, pol_out: Trajectories | None 
 # The iteration and the whole run
 
 
-def _stage_keys(key: Array) -> tuple[Array, ...]:
+def stage_keys(key: Array) -> tuple[Array, ...]:
     """An iteration's keys: (sample, dynamics, linearisation, catch-up S-step, S-step)."""
     return tuple(jax.random.split(key, 5))
 
@@ -419,7 +419,7 @@ def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
     """Everything of an iteration after its rollouts: cost expansion, dynamics fit, KL anchor,
     step size, C-step, S-step (call under ``MATMUL_PRECISION``). Returns (new state, metrics
     without the learning curve's)."""
-    _, k_dyn, k_lin, k_catch_up, k_sstep = _stage_keys(key)
+    _, k_dyn, k_lin, k_catch_up, k_sstep = stage_keys(key)
     cost, sample_costs = _stage(cfg, "cost", cost_stage)(cfg, samples)
     dyn_prior, dyn = _stage(cfg, "dynamics", dynamics_stage)(cfg, state.dyn_prior, samples, k_dyn)
     policy, anchor, catch_up_ok = anchor_stage(cfg, state, samples, first, k_catch_up, k_lin)
@@ -463,7 +463,7 @@ def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = 
     with jax.default_matmul_precision(MATMUL_PRECISION):
         first = state.iteration == 0 if first is None else jnp.asarray(first)
         x0 = tasks.initial_states(cfg.task, state.eta.dtype)
-        samples = sample_stage(cfg, state, x0, _stage_keys(key)[0], first)
+        samples = sample_stage(cfg, state, x0, stage_keys(key)[0], first)
         new_state, metrics = update(cfg, state, samples, key, first)
         metrics.update(learning_curve(cfg, new_state.traj, new_state.policy, x0))
         return new_state, metrics
@@ -506,7 +506,7 @@ def train(cfg: Config, key: Array):
         k, first, last = inp
         with jax.default_matmul_precision(MATMUL_PRECISION):
             x0 = tasks.initial_states(cfg.task, state.eta.dtype)
-            samples, curve = rollout_stage(cfg, state, x0, _stage_keys(k)[0], first)
+            samples, curve = rollout_stage(cfg, state, x0, stage_keys(k)[0], first)
             metric_shapes = []
 
             def trained():

@@ -219,3 +219,27 @@ def test_float32_fit_of_rank_deficient_transitions_stays_finite():
         assert np.linalg.eigvalsh(s / np.outer(d, d)).min() > demmel
     mu0, Phi, m, n0 = gmm_inference(gmm, jnp.asarray(data[:5]))
     assert np.isfinite(np.asarray(Phi)).all()
+
+
+def test_mahalanobis_layouts_agree():
+    # The CPU's [K, n, D] and the GPU's [K, D, n] layouts of ‖L⁻¹(x − μ)‖², both run here, agree
+    # within the dot-product rounding bound: each z_d = Σ_e Linv_de·diff_e is off by at most
+    # γ·s_d, s_d = Σ_e |Linv_de·diff_e|, γ = (D + 1)·ε (Higham, Thm 3.5), so Σ z_d² by at most
+    # Σ_d (2|z_d| + γ s_d)·γ s_d + γ·Σ_d z_d², twice that between two computations.
+    from gmr_jax.gmm import _mahalanobis_columns, _mahalanobis_rows
+    rng = np.random.default_rng(3)
+    K, n, d = 4, 50, 6
+    A = rng.normal(size=(K, d, d))
+    sigma = A @ np.swapaxes(A, -1, -2) + 0.1 * np.eye(d)
+    Linv = np.linalg.inv(np.linalg.cholesky(sigma))
+    mu, data = rng.normal(size=(K, d)), rng.normal(size=(n, d)) * 3.0
+    rows = np.asarray(_mahalanobis_rows(jnp.asarray(Linv), jnp.asarray(mu), jnp.asarray(data)))
+    cols = np.asarray(_mahalanobis_columns(jnp.asarray(Linv), jnp.asarray(mu), jnp.asarray(data)))
+    diff = data[None] - mu[:, None]  # [K, n, d]
+    z = np.einsum("kne,kde->knd", diff, Linv)
+    s = np.einsum("kne,kde->knd", np.abs(diff), np.abs(Linv))
+    g = (d + 1) * np.finfo(np.float64).eps
+    bound = 2 * (np.sum((2 * np.abs(z) + g * s) * g * s, axis=-1) + g * np.sum(z * z, axis=-1))
+    assert rows.shape == cols.shape == (K, n)
+    assert np.all(np.abs(rows - cols) <= bound)
+    assert np.all(np.abs(rows - np.sum(z * z, axis=-1)) <= bound)

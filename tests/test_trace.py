@@ -64,3 +64,12 @@ def test_a_compilation_profile_on_the_cpu(tmp_path):
     # XLA's single compile call of this program is annotated and lies inside the recorded block
     once = [p for p in phases if "compile" in p["name"].lower() and p["count"] == 1]
     assert once and all(p["s"] <= wall for p in once)
+
+
+def test_events_are_split_by_the_windows_they_start_in():
+    windows = [("stage a", 100, 50), ("stage b", 200, 100)]
+    events = [("k1", 90, 5), ("k2", 100, 10), ("k3", 149, 30), ("k4", 150, 1), ("k5", 250, 5), ("k6", 300, 1)]
+    split = trace.split_by_windows(events, windows)
+    assert [e[0] for e in split["stage a"]] == ["k2", "k3"]  # a window is [start, start + duration)
+    assert [e[0] for e in split["stage b"]] == ["k5"]
+    assert [e[0] for e in split[None]] == ["k1", "k4", "k6"]
