@@ -160,7 +160,6 @@ def measure(cfg: config.Config, num_seeds: int, iterations: int, mesh, profile_d
     init_keys, it_keys = jax.vmap(lambda k: mdgps.iteration_keys(k, iterations))(keys)
     state = sharding.seed_program(mdgps.init, mesh, (True,))(cfg, layout(init_keys))
     whole = sharding.seed_program(mdgps.iteration, mesh, (True, True, False))
-    options = sharding.compiler_options(sharding.seeds_per_device(num_seeds, mesh.size))
     timer = StageTimer(cfg, mesh, num_seeds)
     whole_s, whole_compile_s, differences, compiled = [], None, [], None
     for it in range(iterations):
@@ -168,7 +167,7 @@ def measure(cfg: config.Config, num_seeds: int, iterations: int, mesh, profile_d
         new_state = iteration_by_stages(cfg, state, k, first, timer)
         if compiled is None:
             t0 = time.perf_counter()
-            compiled = whole.lower(cfg, state, k, first).compile(compiler_options=options or None)
+            compiled = whole.lower(cfg, state, k, first).compile(compiler_options=timer.options or None)
             whole_compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
         reference, _ = jax.block_until_ready(compiled(state, k, first))
