@@ -110,7 +110,7 @@ def default_impl() -> str:
     On a GPU a minibatch step is bound by its number of dependent kernels, which the packed form
     cuts. On a CPU
     it is bound by arithmetic and memory traffic, and there the packed form's zero padding (about
-    three times GMR's weights in Adam's update and in the single weight-gradient product) costs
+    twice GMR's weights in Adam's update and in the single weight-gradient product) costs
     more than the operations it saves (benchmarks/sstep.py measures both).
     """
     return "reference" if sharding.target_platform() == "cpu" else "packed"

@@ -16,7 +16,7 @@ from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_tre
 
 from gmr_jax.config import GMRConfig, MLPConfig, SStepConfig
 from gmr_jax.policies import Policy, make_policy, make_sstep_data
-from gmr_jax.policies.base import target_logdet
+from gmr_jax.policies.base import column_blocks, join_columns, split_columns, target_logdet
 from gmr_jax.sstep import (adam_corrections, adam_update, default_impl, normalize_weights,
                            set_normalization, sstep)
 
@@ -253,6 +253,11 @@ POLICY_CFGS = {
     # decoder and translation network of different depths: one after the other, not side by side
     "gmr_uneven": ("gmr", GMRConfig(latent=3, encoder_hidden=(16,), decoder_hidden=(8,), translation_hidden=(16, 12)),
                    None),
+    # a head (dU·dX + dU + dU² = 14 columns) wider than every other layer: held as column blocks,
+    # three side by side with the decoder (6 + 6 + 2), two after it (8 + 6)
+    "gmr_narrow": ("gmr", GMRConfig(latent=2, encoder_hidden=(6,), decoder_hidden=(6,), translation_hidden=(6,)), "P"),
+    "gmr_narrow_uneven": ("gmr", GMRConfig(latent=3, encoder_hidden=(8,), decoder_hidden=(5,),
+                                           translation_hidden=(8, 6)), None),
 }
 
 
@@ -387,7 +392,7 @@ def test_packed_sstep_equals_reference_float32():
     np.testing.assert_allclose(new_m["loss"], ref_m["loss"], rtol=2 * delta)
 
 
-@pytest.mark.parametrize("name", ["mlp", "gmr", "gmr_uneven"])
+@pytest.mark.parametrize("name", ["mlp", "gmr", "gmr_uneven", "gmr_narrow", "gmr_narrow_uneven"])
 def test_trained_entries_cover_every_weight(name):
     """``TrainingForm.trained``: sorted, unique indices of θ that include every entry a weight
     packs into (the 1s of a packed all-ones network), while every entry outside them is padding
@@ -527,6 +532,38 @@ def test_packing_keeps_the_initial_weights(name):
         assert float(jnp.sum(ones)) == sum(a.size for a in jax.tree_util.tree_leaves(params.net))
         assert np.sum(np.abs(np.asarray(theta))) == pytest.approx(
             sum(float(jnp.sum(jnp.abs(a))) for a in jax.tree_util.tree_leaves(params.net)), rel=1e-6)
+
+
+def test_column_blocks_split_and_join():
+    """A layer's outputs as column blocks of at most ``width``: the shapes, and split/join as
+    inverses."""
+    assert column_blocks((5, 14), 6) == [(5, 6), (5, 6), (5, 2)]
+    assert column_blocks((5, 12), 6) == [(5, 6), (5, 6)]
+    assert column_blocks((5, 4), 6) == [(5, 4)]
+    kernel, bias = jnp.arange(70.0).reshape(5, 14), jnp.arange(14.0)
+    blocks = split_columns((kernel, bias), column_blocks((5, 14), 6))
+    assert [k.shape for k, _ in blocks] == [(5, 6), (5, 6), (5, 2)]
+    np.testing.assert_array_equal(blocks[2][0], kernel[:, 12:])
+    back = join_columns(blocks)
+    np.testing.assert_array_equal(back[0], kernel)
+    np.testing.assert_array_equal(back[1], bias)
+
+
+@pytest.mark.parametrize("hidden, head_slots", [(64, 2), (40, 3), (128, 1)])
+def test_gmr_head_is_held_in_slots_as_wide_as_the_other_layers(hidden, head_slots):
+    """GMR's packed θ for the reach task's shapes (dX = 12, dU = 6: a head of 72 + 6 + 36 = 114
+    columns): the slot width is the widest layer other than the head, and the head takes
+    ceil(114 / width) slots, so θ has (3 + 3 + 2 + head_slots)·(I + 1)·O entries."""
+    cfg = GMRConfig(encoder_hidden=(hidden, hidden), decoder_hidden=(hidden, hidden),
+                    translation_hidden=(hidden, hidden))
+    pol = make_policy("gmr", cfg)
+    params = pol.init(jax.random.key(0), 12, 6)
+    width = max(hidden, 12)  # the decoder's output (dX = 12) is the widest non-hidden layer
+    assert head_slots == -(-114 // width)
+    assert pol.training.pack(params).size == (8 + head_slots) * (hidden + 1) * width
+    back = pol.training.unpack(params, pol.training.pack(params))
+    for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(params.net)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_impl_choice_and_fallback(policy):

@@ -288,7 +288,9 @@ def noisy_action(policy: Policy, params: PolicyParams, x: Array, noise: Array) -
 # tiny, so the layout below serves one purpose: few operations per step. All dense layers of a
 # policy live in one zero-padded array, networks of equal depth that read the same input run as
 # one batched product per layer, and the weight gradients of all layers come out of a single
-# batched product (``dense_value_and_grad``) instead of one product per layer.
+# batched product (``dense_value_and_grad``) instead of one product per layer. A last layer
+# wider than the others (GMR's head) is held as column blocks in several slots that read the
+# same input (``column_blocks``), so that the padding of every other slot stays small.
 
 
 class DenseLayout(NamedTuple):
@@ -366,6 +368,26 @@ def unpack_dense(layout: DenseLayout, W: Array) -> list[tuple[Array, Array]]:
     return [(W[s, :a, :b], W[s, I, :b]) for s, (a, b) in enumerate(layout.shapes)]
 
 
+def column_blocks(shape: tuple[int, int], width: int) -> list[tuple[int, int]]:
+    """A layer's (fan_in, fan_out) -> the (fan_in, fan_out) of the slots that hold its outputs
+    as consecutive column blocks of at most ``width`` outputs each (one slot if it fits)."""
+    a, b = shape
+    return [(a, min(width, b - start)) for start in range(0, b, width)]
+
+
+def split_columns(layer: tuple[Array, Array], blocks) -> list[tuple[Array, Array]]:
+    """(kernel [a, b], bias [b]) -> one (kernel, bias) per column block of ``blocks``
+    (``column_blocks``' shapes, in order)."""
+    kernel, bias = layer
+    ends = np.cumsum([fan_out for _, fan_out in blocks])
+    return [(kernel[:, e - o: e], bias[e - o: e]) for e, (_, o) in zip(ends, blocks)]
+
+
+def join_columns(layers) -> tuple[Array, Array]:
+    """The inverse of ``split_columns``: [(kernel, bias) per column block] -> (kernel, bias)."""
+    return (jnp.concatenate([k for k, _ in layers], axis=1), jnp.concatenate([b for _, b in layers]))
+
+
 def fit_width(h: Array, width: int) -> Array:
     """h [..., d] -> [..., width]: cut off or zero-padded on the last axis."""
     d = h.shape[-1]
@@ -375,44 +397,58 @@ def fit_width(h: Array, width: int) -> Array:
 
 
 def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x: Array,
-                act: Callable, deltas: Array):
+                act: Callable, deltas: Array, parts=None):
     """n networks of equal depth side by side on the same input, one batched product per layer.
 
-    Layer l of network k is slot ``first + l·n + k`` of W [S, I+1, O] (``layout``); ``deltas``
-    [S, b, O] is added to every pre-activation (zeros: it is the point at which
-    ``dense_value_and_grad`` differentiates). Each layer multiplies by the part of its kernels
-    that can be nonzero (the widest fan-in and fan-out among its n slots), so that no activation
-    has to be padded or cut inside the network.
+    Layer l < depth − 1 of network k is slot ``first + l·n + k`` of W [S, I+1, O] (``layout``);
+    the last layers follow, network k's as ``parts[k]`` slots holding its outputs as column
+    blocks (``column_blocks``), each reading that network's input. ``deltas`` [S, b, O] is added
+    to every pre-activation (zeros: it is the point at which ``dense_value_and_grad``
+    differentiates). Each layer multiplies by the part of its kernels that can be nonzero (the
+    widest fan-in and fan-out among its slots), so that no activation has to be padded or cut
+    inside the network.
 
     Args:
       x: [b, a] the input, a the first layer's widest fan-in.
       act: the hidden activation (act(0) = 0).
+      parts: slots of each network's last layer (default one each).
     Returns:
-      (out [n, b, o], the last layer's pre-activations, o its widest fan-out (columns beyond a
-       network's own fan-out are 0); inputs [depth·n, b, I], every layer's input in slot order,
-       zero-padded to I).
+      (outs, inputs): outs, per network its last layer's pre-activations [b, parts[k]·o] (the
+      column blocks side by side; o the last layer's widest slot, columns beyond a block's own
+      fan-out are 0); inputs [slots, b, I], every slot's input in slot order, zero-padded to I.
     """
     I = layout.width_in
+    parts = (1,) * n if parts is None else tuple(parts)
+    if len(parts) != n or min(parts) < 1:
+        raise ValueError(f"parts={parts}: expected {n} counts of at least 1")
     h = x
     inputs = []
     for layer in range(depth):
         s = first + layer * n
-        a = max(fan_in for fan_in, _ in layout.shapes[s: s + n])
-        o = max(fan_out for _, fan_out in layout.shapes[s: s + n])
+        last = layer == depth - 1
+        m = sum(parts) if last else n
+        a = max(fan_in for fan_in, _ in layout.shapes[s: s + m])
+        o = max(fan_out for _, fan_out in layout.shapes[s: s + m])
         if h.shape[-1] != a:
             raise ValueError(f"slot {s}: input of width {h.shape[-1]}, expected {a}")
-        kernel = W[s: s + n, :a, :o]
+        kernel = W[s: s + m, :a, :o]
         if layer == 0:
-            # the shared input is not copied n times: the product's gradient with respect to x
-            # then contracts over the n networks too, with no separate sum
-            inputs.append(jnp.broadcast_to(fit_width(x, I), (n,) + x.shape[:-1] + (I,)))
+            # the shared input is not copied m times: the product's gradient with respect to x
+            # then contracts over the m slots too, with no separate sum
+            inputs.append(jnp.broadcast_to(fit_width(x, I), (m,) + x.shape[:-1] + (I,)))
             product = jnp.einsum("ba,nao->nbo", x, kernel)
         else:
+            if last and m != n:
+                # static broadcasts, not jnp.repeat: its gradient would be a scatter-add
+                h = jnp.concatenate([jnp.broadcast_to(h[k], (p,) + h.shape[1:]) for k, p in enumerate(parts)])
             inputs.append(fit_width(h, I))
             product = jnp.matmul(h, kernel)
-        pre = product + W[s: s + n, I:, :o] + deltas[s: s + n, :, :o]
-        if layer == depth - 1:
-            return pre, jnp.concatenate(inputs, axis=0)
+        pre = product + W[s: s + m, I:, :o] + deltas[s: s + m, :, :o]
+        if last:
+            starts = np.cumsum((0,) + parts)
+            outs = [pre[starts[k]] if parts[k] == 1 else
+                    jnp.concatenate(list(pre[starts[k]: starts[k + 1]]), axis=-1) for k in range(n)]
+            return outs, jnp.concatenate(inputs, axis=0)
         h = act(pre)
 
 

@@ -74,10 +74,11 @@ import numpy as np
 from gmr_jax.config import GMRConfig
 from gmr_jax.policies import gmr_kernel
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
-                                   default_float, dense_chain, dense_entries, dense_layout, dense_stack,
-                                   dense_value_and_grad, flax_dense_layers, flax_dense_params,
-                                   identity_normalization, normalize_input, pack_dense, pack_rows, squash,
-                                   symmetrize, target_logdet, unpack_dense, unpack_rows)
+                                   column_blocks, default_float, dense_chain, dense_entries, dense_layout,
+                                   dense_stack, dense_value_and_grad, flax_dense_layers, flax_dense_params,
+                                   identity_normalization, join_columns, normalize_input, pack_dense,
+                                   pack_rows, split_columns, squash, symmetrize, target_logdet, unpack_dense,
+                                   unpack_rows)
 from gmr_jax.policies.mlp import closed_form_variance
 
 
@@ -628,7 +629,9 @@ def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
     Slots of the dense layout: the encoder's layers, then the decoder's and the translation
     network's. Both read z; with equal depths they run side by side (one batched product per
     layer, slots interleaved layer by layer), otherwise one after the other. The translation
-    network's last layer emits the packed head (head_columns).
+    network's last layer emits the packed head (head_columns); as it is wider than every other
+    layer, it is held as column blocks as wide as the widest other layer (``head_parts`` slots,
+    ``column_blocks``), so that the other slots carry little padding.
     """
     n_enc = len(cfg.encoder_hidden) + 1
     n_dec = len(cfg.decoder_hidden) + 1
@@ -636,23 +639,36 @@ def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
     side_by_side = n_dec == n_trans
 
     def slot_order(enc, dec, trans, side_by_side):
-        """Per-network lists of layers -> the list in slot order."""
-        rest = [a for pair in zip(dec, trans) for a in pair] if side_by_side else dec + trans
-        return enc + rest
+        """Per-network lists of slots (the translation network's last layer as its column blocks)
+        -> the list in slot order."""
+        if not side_by_side:
+            return enc + dec + trans
+        pairs = [a for pair in zip(dec[:-1], trans[: n_trans - 1]) for a in pair]
+        return enc + pairs + [dec[-1]] + trans[n_trans - 1:]
+
+    def network_order(slots, side_by_side):
+        """The inverse of slot_order: slots -> (enc, dec, trans) lists of slots."""
+        enc, rest = slots[:n_enc], slots[n_enc:]
+        if side_by_side:
+            k = 2 * (n_dec - 1)
+            return enc, rest[0:k:2] + [rest[k]], rest[1:k:2] + rest[k + 1:]
+        return enc, rest[:n_dec], rest[n_dec:]
+
+    def chains(dX: int, dU: int):
+        """(enc, dec, trans) lists of (fan_in, fan_out), the head as its column blocks."""
+        enc = dense_chain(dX, cfg.encoder_hidden, 2 * cfg.latent)
+        dec = dense_chain(cfg.latent, cfg.decoder_hidden, dX)
+        trans = dense_chain(cfg.latent, cfg.translation_hidden, packed_head_size(dX, dU))
+        width = max(fan_out for _, fan_out in enc + dec + trans[:-1])
+        return enc, dec, trans[:-1] + column_blocks(trans[-1], width)
 
     def layout(dX: int, dU: int):
         """(DenseLayout, side_by_side) for a state of dX and an action of dU entries."""
-        return dense_layout(slot_order(dense_chain(dX, cfg.encoder_hidden, 2 * cfg.latent),
-                                       dense_chain(cfg.latent, cfg.decoder_hidden, dX),
-                                       dense_chain(cfg.latent, cfg.translation_hidden, packed_head_size(dX, dU)),
-                                       side_by_side)), side_by_side
+        return dense_layout(slot_order(*chains(dX, dU), side_by_side)), side_by_side
 
-    def network_order(slots, side_by_side):
-        """The inverse of slot_order: slots -> (enc, dec, trans) lists of layers."""
-        enc, rest = slots[:n_enc], slots[n_enc:]
-        if side_by_side:
-            return enc, rest[0::2], rest[1::2]
-        return enc, rest[:n_dec], rest[n_dec:]
+    def head_parts(dX: int, dU: int) -> int:
+        """The slots of the translation network's last layer."""
+        return len(chains(dX, dU)[2]) - (n_trans - 1)
 
     def pack(params: PolicyParams):
         """params.net (Flax) -> θ [S·(I+1)·O], the S-step's flat weight vector."""
@@ -663,7 +679,8 @@ def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
                            (("encoder", n_enc), ("decoder", n_dec), ("translation", n_trans)))
         src = head_columns(dX, dU)
         square = lambda a: jnp.where(src >= 0, a[..., np.maximum(src, 0)], 0)  # noqa: E731
-        trans[-1] = tuple(square(a) for a in trans[-1])
+        head = tuple(square(a) for a in trans[-1])
+        trans = trans[:-1] + split_columns(head, chains(dX, dU)[2][n_trans - 1:])
         return pack_dense(lay, slot_order(enc, dec, trans, side)).reshape(-1)
 
     def unpack(params: PolicyParams, theta):
@@ -673,11 +690,13 @@ def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
         enc, dec, trans = network_order(unpack_dense(lay, theta.reshape(lay.array_shape)), side)
         src = head_columns(dX, dU)
         cols = np.argsort(np.where(src >= 0, src, len(src)))[: head_size(dX, dU)]  # head col -> packed col
-        trans[-1] = tuple(a[..., cols] for a in trans[-1])
+        head = join_columns(trans[n_trans - 1:])
+        trans = trans[: n_trans - 1] + [tuple(a[..., cols] for a in head)]
         return {"params": {"encoder": flax_dense_params(enc), "decoder": flax_dense_params(dec),
                            "translation": flax_dense_params(trans)}}
 
-    return SimpleNamespace(n_enc=n_enc, n_dec=n_dec, n_trans=n_trans, slot_order=slot_order, layout=layout, network_order=network_order, pack=pack, unpack=unpack)
+    return SimpleNamespace(n_enc=n_enc, n_dec=n_dec, n_trans=n_trans, slot_order=slot_order, layout=layout,
+                           head_parts=head_parts, network_order=network_order, pack=pack, unpack=unpack)
 
 
 def _training_form(cfg: GMRConfig, net: SimpleNamespace, terms: SimpleNamespace,
@@ -699,14 +718,16 @@ def _training_form(cfg: GMRConfig, net: SimpleNamespace, terms: SimpleNamespace,
         dX, dU = net.dims(params)
         lay, side = packing.layout(dX, dU)
         act = functools.partial(nn.leaky_relu, negative_slope=cfg.negative_slope)
+        parts = packing.head_parts(dX, dU)
         enc, inputs = dense_stack(W, lay, 0, 1, packing.n_enc, rows.xn, act, deltas)
-        z, kl = reparameterize(enc[0, :, : 2 * cfg.latent], eps)
+        z, kl = reparameterize(enc[0][:, : 2 * cfg.latent], eps)
         if side:
-            out, dt_inputs = dense_stack(W, lay, packing.n_enc, 2, packing.n_dec, z, act, deltas)
+            out, dt_inputs = dense_stack(W, lay, packing.n_enc, 2, packing.n_dec, z, act, deltas, (1, parts))
             xhat, out_head, inputs = out[0], out[1], [inputs, dt_inputs]
         else:
             dec, dec_inputs = dense_stack(W, lay, packing.n_enc, 1, packing.n_dec, z, act, deltas)
-            trans, trans_inputs = dense_stack(W, lay, packing.n_enc + packing.n_dec, 1, packing.n_trans, z, act, deltas)
+            trans, trans_inputs = dense_stack(W, lay, packing.n_enc + packing.n_dec, 1, packing.n_trans, z, act,
+                                              deltas, (parts,))
             xhat, out_head, inputs = dec[0], trans[0], [inputs, dec_inputs, trans_inputs]
         G, g, square = _split_head(out_head[:, : packed_head_size(dX, dU)], dX, dU)
         scale = jnp.ones_like(params.norm.scale) if cfg.head_coordinates == "raw" else params.norm.scale

@@ -152,7 +152,7 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
 
         def f(deltas):
             out, inputs = dense_stack(W, lay, 0, 1, n_layers, batch.xn, ACTIVATION_FNS[cfg.activation], deltas)
-            du = out[0, :, :dU] - batch.tgt_mu
+            du = out[0][:, :dU] - batch.tgt_mu
             value = 0.5 * jnp.mean(quadratic_rows(du, batch.prc))
             return value, ({"action_mse": jnp.mean(jnp.square(du))}, inputs)
 
