@@ -260,18 +260,20 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     stats_def = []
 
     def step(carry, inputs):
-        w, mu, nu = carry
+        w, mu, nu, l2 = carry
         i, eps, c1, c2 = inputs
         (value, aux), grad = form.value_and_grad(params, expand(w), rows[i], eps)
         g = grad if trained is None else grad[trained]
         # d(β·Σθ²)/dθ as autodiff forms it, β·(2θ)
         w_new, mu, nu = adam_update(cfg, w, mu, nu, g + cfg.weight_decay * (2.0 * w), c1, c2)
-        stats, treedef = _stats(value + cfg.weight_decay * l2_penalty(w), value, aux)
+        stats, treedef = _stats(value + cfg.weight_decay * l2, value, aux)
         stats_def.append(treedef)
-        return (w_new, mu, nu), stats
+        # Σθ² of the next step's weights, summed where they are made: XLA can then fuse the sum
+        # into Adam's update instead of reading the weights once more in the next step
+        return (w_new, mu, nu, l2_penalty(w_new)), stats
 
     zeros = jnp.zeros_like(w0)
-    (w, *_), stats = lax.scan(step, (w0, zeros, zeros), (idx, noise, c1, c2),
+    (w, *_), stats = lax.scan(step, (w0, zeros, zeros, l2_penalty(w0)), (idx, noise, c1, c2),
                               unroll=min(cfg.unroll, len(idx)))
     means = _epoch_means(cfg, stats)
     return form.unpack(params, expand(w)), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
