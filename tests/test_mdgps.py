@@ -97,14 +97,32 @@ def test_policy_iteration_jit_equals_eager(algorithm):
     assert_tolerances_small(jitted, tol, 1e-5)
     eager = mdgps.iteration(cfg, state, key, first)
     assert_trees_within(eager, jitted, tol)
-    if algorithm == "mdgps":
-        # Without the flag the first iteration is recognised from the state's counter (the same
-        # lax.cond, its predicate computed in the program; the policy plays no part, so one
-        # algorithm's compile of that program covers it).
-        by_counter = jax.jit(mdgps.iteration, static_argnums=0)(cfg, state, key)
-        assert_trees_within(by_counter, jitted, tol)
     assert np.all(np.asarray(jitted[1]["ok"]))
     assert np.isfinite(np.asarray(jitted[1]["final_state_mse_policy"])).all()
+
+
+def test_first_iteration_defaults_to_the_state_counter(monkeypatch):
+    # Without the flag ``iteration`` takes the first iteration from ``state.iteration == 0``; the
+    # flag then reaches the stages as the explicit one would (checked at the first stage, which
+    # stops the iteration there, so nothing is computed or compiled).
+    class Reached(Exception):
+        pass
+
+    seen = []
+
+    def first_stage(cfg, state, x0, key, first):
+        seen.append(bool(first))
+        raise Reached
+
+    monkeypatch.setattr(mdgps, "sample_stage", first_stage)
+    cfg = small("mdgps")
+    abstract = jax.eval_shape(lambda k: mdgps.init(cfg, k), jax.random.PRNGKey(1))
+    for count in (0, 1, 3):
+        state = abstract._replace(iteration=jnp.asarray(count, abstract.iteration.dtype))
+        for flag in (None, count == 0):
+            with pytest.raises(Reached):
+                mdgps.iteration(cfg, state, jax.random.PRNGKey(2), flag)
+    assert seen == [True, True, False, False, False, False]
 
 
 def test_train_traces_the_update_once(monkeypatch):
