@@ -268,8 +268,8 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         w_new, mu, nu = adam_update(cfg, w, mu, nu, g + cfg.weight_decay * (2.0 * w), c1, c2)
         stats, treedef = _stats(value + cfg.weight_decay * l2, value, aux)
         stats_def.append(treedef)
-        # Σθ² of the next step's weights, summed where they are made: XLA can then fuse the sum
-        # into Adam's update instead of reading the weights once more in the next step
+        # Σθ² of the next step's weights, summed as soon as they are made and carried over, so
+        # that the next step does not start with this sum (the same sum of the same weights)
         return (w_new, mu, nu, l2_penalty(w_new)), stats
 
     zeros = jnp.zeros_like(w0)

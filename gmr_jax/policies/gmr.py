@@ -666,9 +666,13 @@ def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
         """(DenseLayout, side_by_side) for a state of dX and an action of dU entries."""
         return dense_layout(slot_order(*chains(dX, dU), side_by_side)), side_by_side
 
+    def head_blocks(dX: int, dU: int):
+        """The (fan_in, fan_out) of the translation network's last layer's slots."""
+        return chains(dX, dU)[2][n_trans - 1:]
+
     def head_parts(dX: int, dU: int) -> int:
         """The slots of the translation network's last layer."""
-        return len(chains(dX, dU)[2]) - (n_trans - 1)
+        return len(head_blocks(dX, dU))
 
     def pack(params: PolicyParams):
         """params.net (Flax) -> θ [S·(I+1)·O], the S-step's flat weight vector."""
@@ -680,7 +684,7 @@ def _packing(cfg: GMRConfig, net: SimpleNamespace) -> SimpleNamespace:
         src = head_columns(dX, dU)
         square = lambda a: jnp.where(src >= 0, a[..., np.maximum(src, 0)], 0)  # noqa: E731
         head = tuple(square(a) for a in trans[-1])
-        trans = trans[:-1] + split_columns(head, chains(dX, dU)[2][n_trans - 1:])
+        trans = trans[:-1] + split_columns(head, head_blocks(dX, dU))
         return pack_dense(lay, slot_order(enc, dec, trans, side)).reshape(-1)
 
     def unpack(params: PolicyParams, theta):
