@@ -27,8 +27,9 @@ jax.config.update("jax_enable_x64", True)
 
 @pytest.fixture(scope="session")
 def scheduler():
-    """One runner scheduler for every test: runs of the same configuration share its compiled
-    programs (each compilation costs tens of seconds on the CPU)."""
+    """One runner scheduler for every test of a test process (the README's command runs two,
+    pytest-xdist's workers): runs of the same configuration share its compiled programs (each
+    compilation costs tens of seconds on the CPU)."""
     from gmr_jax import runner
 
     with runner.Scheduler(compile_jobs=1, devices=1) as shared:
