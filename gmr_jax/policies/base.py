@@ -45,6 +45,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from gmr_jax import linalg
 
@@ -434,9 +435,12 @@ def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x
         kernel = W[s: s + m, :a, :o]
         if layer == 0:
             # the shared input is not copied m times: the product's gradient with respect to x
-            # then contracts over the m slots too, with no separate sum
+            # then contracts over the m slots too, with no separate sum. x is the product's left
+            # operand, so that its rows stay the major axis of the product ([b, m, o], each row's
+            # outputs contiguous, as every later layer's): jnp.einsum would make x the right
+            # operand and form [m, o, b], whose consumers then need transposes
             inputs.append(jnp.broadcast_to(fit_width(x, I), (m,) + x.shape[:-1] + (I,)))
-            product = jnp.einsum("ba,nao->nbo", x, kernel)
+            product = jnp.swapaxes(lax.dot_general(x, kernel, (((1,), (1,)), ((), ()))), 0, 1)
         else:
             if last and m != n:
                 # static broadcasts, not jnp.repeat: its gradient would be a scatter-add
