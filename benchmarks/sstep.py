@@ -17,7 +17,13 @@ Adam step, the device's busy and idle time, the costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
 the default on a GPU; the benchmark's default) beside the reference form it is tested against
-(autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run. Every row also counts the operations of the compiled
+(autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run.
+Each S-step is compiled with the XLA options the runner uses for that many seeds on one device
+(``sharding.compiler_options``); ``--compiler-options runner,none`` adds XLA's defaults in the
+same run. ``--against-float64`` also trains each S-step in float64 from the same data and
+initial weights, and reports how far the measured precision's trained weights lie from those:
+the forms' and options' round-off, measured against the exact arithmetic's result rather than
+against each other. Every row also counts the operations of the compiled
 minibatch loop's body (the while-loop body of the optimised HLO that launches the most matrix
 products; ``body_ops`` by opcode, ``ops_per_step`` = all but parameters, tuples, constants and
 bitcasts, divided by the steps per iteration). On a GPU each of those operations is a kernel
@@ -45,7 +51,7 @@ from benchmarks import trace
 from experiments import cli
 from jax.flatten_util import ravel_pytree
 
-from gmr_jax import config, mdgps, policies, sstep, tasks
+from gmr_jax import config, mdgps, policies, sharding, sstep, tasks
 from gmr_jax.policies import gmr_kernel
 
 
@@ -174,6 +180,15 @@ def parse_args(argv=None):
                    help="comma-separated jax.default_matmul_precision values to trace the S-step "
                         "under (default: training's, %(default)s; e.g. TF32_TF32_F32_X3: three "
                         "TF32 tensor-core products per product, about float32's accuracy)")
+    p.add_argument("--compiler-options", default="runner",
+                   help="comma-separated: runner (the XLA options the runner compiles --seeds seeds "
+                        "per device with, sharding.compiler_options), none (XLA's defaults), or "
+                        "options of your own as NAME=VALUE joined by '+', e.g. "
+                        "xla_gpu_enable_triton_gemm=false")
+    p.add_argument("--against-float64", action="store_true",
+                   help="also train each S-step in float64 from the same data and initial weights "
+                        "(generated in float64, rounded to the measured precision) and report "
+                        "max |θ - θ64| / max |θ64| of the trained weights")
     p.add_argument("--out", help="write the results as JSON to this file")
     p.add_argument("--hlo-dir", help="also write each compiled program's HLO text here")
     p.add_argument("--profile", metavar="DIR", help="also run each S-step once under JAX's profiler "
@@ -185,6 +200,11 @@ def parse_args(argv=None):
         bad = [v for v in value.split(",") if v not in allowed]
         if bad:
             p.error(f"{flag}: {', '.join(bad)} not among {', '.join(allowed)}")
+    for value in args.compiler_options.split(","):
+        try:
+            compiler_options(value, 1)
+        except ValueError as err:
+            p.error(f"--compiler-options {value!r}: {err}")
     for value in args.matmul_precision.split(","):
         try:
             with jax.default_matmul_precision(value):
@@ -196,27 +216,40 @@ def parse_args(argv=None):
 
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
             adam_entries: str = config.SStepConfig.adam_entries,
-            matmul_precision: str = mdgps.MATMUL_PRECISION) -> tuple[dict, jax.Array]:
-    """Compile and time one S-step configuration; returns its result row (and prints it) and
-    the trained weights of the first timed S-step, [seeds, n]."""
+            matmul_precision: str = mdgps.MATMUL_PRECISION, options: str = "runner") -> tuple[dict, jax.Array]:
+    """Compile and time one S-step configuration (``options``: the runner's XLA options or
+    none); returns its result row (and prints it) and the trained weights of the first timed
+    S-step, [seeds, n]."""
     tag = (f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}" if impl == "packed" else "")
-           + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}"))
+           + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
+           + ("" if options == "runner" else f"_{options}"))
+    options_given = compiler_options(options, args.seeds)
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
                        sstep__adam_entries=adam_entries)
     pol = policies.for_config(cfg)
+    # with --against-float64, the data and initial weights are made in float64 and rounded
+    made = jnp.float64 if args.against_float64 else dtype
     if args.seeds == 1:
         params = mdgps.init(cfg, jax.random.PRNGKey(0)).policy.params
-        data = synthetic_data(cfg, jax.random.PRNGKey(1), dtype)
+        data = synthetic_data(cfg, jax.random.PRNGKey(1), made)
         fn = jax.jit(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))
     else:
         keys = jax.random.split(jax.random.PRNGKey(0), args.seeds)
         params = jax.vmap(lambda k: mdgps.init(cfg, k).policy.params)(keys)
-        data = jax.vmap(lambda k: synthetic_data(cfg, k, dtype))(keys)
+        data = jax.vmap(lambda k: synthetic_data(cfg, k, made))(keys)
         fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))(
             p, d, jax.random.split(k, args.seeds)))
+    exact = None
+    if args.against_float64:
+        params, data = _as_float(params, jnp.float64), _as_float(data, jnp.float64)
+        with jax.default_matmul_precision(matmul_precision):
+            net64 = fn.lower(params, data, jax.random.PRNGKey(2)).compile(
+                compiler_options=options_given or None)(params, data, jax.random.PRNGKey(3))[0].net
+        exact = _flat_weights(net64, args.seeds)
+        params, data = _as_float(params, dtype), _as_float(data, dtype)
     t0 = time.perf_counter()
     with jax.default_matmul_precision(matmul_precision):  # by default traced as training traces it
-        compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile()
+        compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
     hlo = compiled.as_text()
     if args.hlo_dir:
@@ -230,9 +263,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         jax.block_until_ready(out)
         times.append(time.perf_counter() - t0)
         if r == 0:
-            # [seeds, n]: each seed's trained weights as one vector
-            weights = (ravel_pytree(out.net)[0][None] if args.seeds == 1
-                       else jax.vmap(lambda n: ravel_pytree(n)[0])(out.net))
+            weights = _flat_weights(out.net, args.seeds)
             finite = bool(jnp.all(info["finite"]))
     nb = data.x.shape[-2] // cfg.sstep.batch_size
     steps = args.epochs * nb
@@ -248,7 +279,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         profile = trace.kernel_summary(trace.device_events(rec[0]), steps)
         profile["device_lines"] = trace.device_lines(rec[0])
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
-           "matmul_precision": matmul_precision,
+           "matmul_precision": matmul_precision, "compiler_options": options_given,
            "adam_entries": adam_entries if impl == "packed" else None,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
@@ -257,10 +288,14 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile,
            # to tell whether two processes (e.g. other XLA_FLAGS) trained bit-identical weights
            "weights_sha256": hashlib.sha256(np.asarray(weights).tobytes()).hexdigest()}
+    if exact is not None:
+        row.update({f"{k}_vs_float64": v for k, v in _relative_differences(weights, exact).items()})
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
             else f"{impl}/{adam_entries}" if impl == "packed" else impl)
     if matmul_precision != mdgps.MATMUL_PRECISION:
         name += f"/{matmul_precision}"
+    if options != "runner":
+        name += f"/{options}"
     print(f"{algorithm:5s} {scenario:2s} seeds {args.seeds} unroll {unroll:3d} {name:16s}: {run_s:7.3f} s for {steps} steps "
           f"= {row['us_per_step']:6.1f} µs/step (compile {compile_s:.1f} s), "
           f"{row['ops_per_step']:.1f} ops/step in the loop body {body}", flush=True)
@@ -273,13 +308,62 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
             print(f"      {k['us_per_step']:7.2f} µs/step  ×{k['count']:6d}  {k['name'][:90]}", flush=True)
     elif profile is not None:
         print("    profile: no device kernels in the trace (not a GPU)", flush=True)
+    if exact is not None:
+        print(f"    max |θ - θ64| / max |θ64|: {_describe(row, '_vs_float64', args.seeds)}", flush=True)
     return row, weights
+
+
+def compiler_options(spec: str, seeds: int) -> dict:
+    """One ``--compiler-options`` entry as XLA options: "runner" (``sharding.compiler_options``
+    for ``seeds`` seeds on one device), "none" ({}), or NAME=VALUE pairs joined by "+" (VALUE
+    true/false, an integer, or a string)."""
+    if spec == "runner":
+        return sharding.compiler_options(seeds)
+    if spec == "none":
+        return {}
+    options = {}
+    for pair in spec.split("+"):
+        name, sep, value = pair.partition("=")
+        if not sep or not name:
+            raise ValueError(f"{pair!r} is not NAME=VALUE (or runner, none)")
+        low = value.lower()
+        options[name] = (low == "true" if low in ("true", "false")
+                         else int(value) if value.lstrip("-").isdigit() else value)
+    return options
+
+
+def _as_float(tree, dtype):
+    """``tree`` with its floating-point leaves cast to ``dtype`` (other leaves as they are)."""
+    return jax.tree_util.tree_map(
+        lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, tree)
+
+
+def _flat_weights(net, seeds: int) -> jax.Array:
+    """[seeds, n]: each seed's trained weights as one float64 vector."""
+    flat = ravel_pytree(net)[0][None] if seeds == 1 else jax.vmap(lambda n: ravel_pytree(n)[0])(net)
+    return flat.astype(jnp.float64) if jax.config.jax_enable_x64 else flat
+
+
+def _relative_differences(weights, reference) -> dict:
+    """Per seed, max |weights − reference| / max |reference| ([seeds, n] each): the largest and
+    the median over seeds, and the count of seeds above 1e-4."""
+    per_seed = jnp.max(jnp.abs(weights - reference), axis=1) / jnp.max(jnp.abs(reference), axis=1)
+    return {"max_rel_diff": float(jnp.max(per_seed)), "median_rel_diff": float(jnp.median(per_seed)),
+            "seeds_rel_diff_above_1e-4": int(jnp.sum(per_seed > 1e-4))}
+
+
+def _describe(row: dict, suffix: str, seeds: int) -> str:
+    return (f"{row['max_rel_diff' + suffix]:.2e} (median over seeds {row['median_rel_diff' + suffix]:.2e}, "
+            f"{row['seeds_rel_diff_above_1e-4' + suffix]} of {seeds} above 1e-4)")
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     args.precision = cli.setup_jax(args.precision)
     dtype = jnp.float64 if args.precision == "float64" else jnp.float32
+    if args.against_float64:
+        # float64 arrays beside the measured precision's: each S-step follows its inputs' dtype
+        jax.config.update("jax_enable_x64", True)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,
            "platform": dev.platform, "precision": args.precision, "jax": jax.__version__,
@@ -294,24 +378,20 @@ def main(argv=None) -> int:
                     variants = ([(int(w), d, None) for w in args.num_warps.split(",") for d in args.kernel_dot.split(",")]
                                 if impl == "kernel" else [(None, None, e) for e in args.adam_entries.split(",")]
                                 if impl == "packed" else [(None, None, None)])
-                    variants = [v + (mp,) for v in variants for mp in args.matmul_precision.split(",")]
-                    for warps, dot, entries, matmul_precision in variants:
+                    variants = [v + (mp, o) for v in variants for mp in args.matmul_precision.split(",")
+                                for o in args.compiler_options.split(",")]
+                    for warps, dot, entries, matmul_precision, options in variants:
                         if warps:
                             gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
                         row, weights = measure(algorithm, scenario, unroll, impl, args, dtype,
-                                               entries or config.SStepConfig.adam_entries, matmul_precision)
+                                               entries or config.SStepConfig.adam_entries, matmul_precision, options)
                         # every form trains the same weights to round-off: per seed, the largest
                         # difference from the first form listed relative to that seed's largest
                         # weight; the row reports the largest and the median over seeds
                         first = weights if first is None else first
-                        per_seed = jnp.max(jnp.abs(weights - first), axis=1) / jnp.max(jnp.abs(first), axis=1)
-                        row["max_rel_diff_vs_first"] = float(jnp.max(per_seed))
-                        row["median_rel_diff_vs_first"] = float(jnp.median(per_seed))
-                        row["seeds_rel_diff_above_1e-4"] = int(jnp.sum(per_seed > 1e-4))
-                        print(f"    max |Δθ| / max |θ| against {args.impl.split(',')[0]}: "
-                              f"{row['max_rel_diff_vs_first']:.2e} (median over seeds "
-                              f"{row['median_rel_diff_vs_first']:.2e}, {row['seeds_rel_diff_above_1e-4']} of "
-                              f"{args.seeds} above 1e-4)", flush=True)
+                        row.update({f"{k}_vs_first": v for k, v in _relative_differences(weights, first).items()})
+                        print(f"    max |Δθ| / max |θ| against the first form listed: "
+                              f"{_describe(row, '_vs_first', args.seeds)}", flush=True)
                         rows.append(row)
     if args.out:
         with open(args.out, "w") as f:

@@ -105,20 +105,25 @@ def over_seeds(fn: Callable, mesh: Mesh, batched: tuple[bool, ...]) -> Callable:
 # (benchmarks/RESULTS.md, eleventh session).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
-# On a GPU, a program of one seed per device runs its matrix products as cuBLAS calls instead of
-# Triton GEMMs: the same products to round-off, fewer kernels per S-step (no split-K reductions),
-# S-steps 8-17 % faster and the default run 9-17 % faster on an H100; from 2 seeds per device
-# the Triton GEMMs are faster (benchmarks/RESULTS.md, ninth, twelfth and fourteenth sessions).
-GPU_ONE_SEED_COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False}
+# On a GPU, a program of one seed per device computes its small matrix products with XLA's own
+# dot emitter, and the others as cuBLAS calls, never as Triton GEMMs. A product whose (m + n)·k
+# is below the threshold stays an XLA dot: every product of the S-step's minibatch steps with the
+# paper's networks (the largest, 20 rows through a 64-wide layer, (20 + 64)·64 = 5 376), each a
+# kernel as short as the step's other operations, where a cuBLAS call takes about twice as long.
+# The same products to round-off (float32 multiply-adds in another order). With more seeds per
+# device the same products are larger batches, for which cuBLAS and Triton are faster
+# (benchmarks/RESULTS.md: ninth, twelfth, fourteenth and nineteenth sessions).
+GPU_ONE_SEED_COMPILER_OPTIONS = {"xla_gpu_enable_triton_gemm": False,
+                                 "xla_gpu_gemm_rewrite_size_threshold": 10_000}
 
 
 def wanted_compiler_options(backend: str, seeds_per_device: int, xla_flags: str) -> dict:
     """The options :func:`compiler_options` asks for: ``CPU_COMPILER_OPTIONS`` on a CPU,
-    ``GPU_ONE_SEED_COMPILER_OPTIONS`` on a GPU for one seed per device, else none; none where
-    ``xla_flags`` names one of them (the user's choice wins)."""
+    ``GPU_ONE_SEED_COMPILER_OPTIONS`` on a GPU for one seed per device, else none; without those
+    that ``xla_flags`` names (the user's choice wins)."""
     options = {"cpu": CPU_COMPILER_OPTIONS,
                "gpu": GPU_ONE_SEED_COMPILER_OPTIONS if seeds_per_device == 1 else {}}.get(backend, {})
-    return {} if any(name in xla_flags for name in options) else dict(options)
+    return {name: value for name, value in options.items() if name not in xla_flags}
 
 
 @functools.lru_cache(maxsize=None)

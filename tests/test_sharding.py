@@ -127,12 +127,14 @@ def test_cpu_compiler_options_change_only_round_off(monkeypatch):
 
 
 def test_compiler_options_by_backend_and_seeds_per_device():
-    """cuBLAS products (no Triton GEMMs) on a GPU for one seed per device only; the CPU option
-    for any seed count; none where XLA_FLAGS names the option."""
+    """XLA's dots and cuBLAS products (no Triton GEMMs) on a GPU for one seed per device only;
+    the CPU option for any seed count; an option XLA_FLAGS names is left to XLA_FLAGS."""
     wanted = sharding.wanted_compiler_options
-    assert wanted("gpu", 1, "") == {"xla_gpu_enable_triton_gemm": False}
+    one_seed = {"xla_gpu_enable_triton_gemm": False, "xla_gpu_gemm_rewrite_size_threshold": 10_000}
+    assert wanted("gpu", 1, "") == one_seed
     assert wanted("gpu", 2, "") == {} and wanted("gpu", 256, "") == {}
-    assert wanted("gpu", 1, "--xla_gpu_enable_triton_gemm=true") == {}
+    assert wanted("gpu", 1, "--xla_gpu_enable_triton_gemm=true") == {"xla_gpu_gemm_rewrite_size_threshold": 10_000}
+    assert wanted("gpu", 1, "--xla_gpu_gemm_rewrite_size_threshold=100 --xla_gpu_enable_triton_gemm=true") == {}
     assert wanted("cpu", 1, "") == wanted("cpu", 64, "") == sharding.CPU_COMPILER_OPTIONS
     assert wanted("tpu", 1, "") == {}
 
