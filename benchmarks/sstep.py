@@ -18,8 +18,8 @@ Adam step, the device's busy and idle time, the costliest kernels.
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
 the default on a GPU; the benchmark's default) beside the reference form it is tested against
 (autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run.
-Each S-step is compiled with the XLA options the runner uses for that many seeds on one device
-(``sharding.compiler_options``); ``--compiler-options runner,none`` adds XLA's defaults in the
+Each S-step is traced and compiled as the runner does for that many seeds on one device
+(``sharding.one_seed_per_device`` for one seed, ``sharding.compiler_options``); ``--compiler-options runner,none`` adds XLA's defaults in the
 same run. ``--against-float64`` also trains each S-step in float64 from the same data and
 initial weights, and reports how far the measured precision's trained weights lie from those:
 the forms' and options' round-off, measured against the exact arithmetic's result rather than
@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import hashlib
 import json
 import os
@@ -224,6 +225,9 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
            + ("" if options == "runner" else f"_{options}"))
     options_given = compiler_options(options, args.seeds)
+    # the runner traces a program of one seed per device under its one-seed choices
+    traced_as = (sharding.one_seed_per_device if options == "runner" and args.seeds == 1
+                 else contextlib.nullcontext)
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
                        sstep__adam_entries=adam_entries)
     pol = policies.for_config(cfg)
@@ -242,13 +246,13 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     exact = None
     if args.against_float64:
         params, data = _as_float(params, jnp.float64), _as_float(data, jnp.float64)
-        with jax.default_matmul_precision(matmul_precision):
+        with jax.default_matmul_precision(matmul_precision), traced_as():
             net64 = fn.lower(params, data, jax.random.PRNGKey(2)).compile(
                 compiler_options=options_given or None)(params, data, jax.random.PRNGKey(3))[0].net
         exact = _flat_weights(net64, args.seeds)
         params, data = _as_float(params, dtype), _as_float(data, dtype)
     t0 = time.perf_counter()
-    with jax.default_matmul_precision(matmul_precision):  # by default traced as training traces it
+    with jax.default_matmul_precision(matmul_precision), traced_as():  # as training traces it
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
     hlo = compiled.as_text()

@@ -16,6 +16,7 @@ plain vmapped program (of the plain program for a single seed, :func:`over_seed_
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 from typing import Callable
@@ -150,10 +151,25 @@ def compiler_options(seeds_per_device: int = 1, platform: str | None = None) -> 
     return _accepted(tuple(sorted(wanted.items())), platform)
 
 
+@contextlib.contextmanager
+def one_seed_per_device():
+    """Trace-time choices for a program of one seed per device (``over_seed_axis``' block of one
+    seed): on a GPU, the policies' packed S-step forms may trace their small products as sums
+    of broadcast products (``policies.base.products_as_reductions``; GMR's does), which XLA
+    fuses with the operations around them (benchmarks/RESULTS.md, nineteenth session); elsewhere
+    nothing. Every input of that choice (platform, seeds per block) is part of the program's
+    jit cache key: the default device and the block's shapes."""
+    from gmr_jax.policies import base
+
+    with base.products_as_reductions(target_platform() == "gpu"):
+        yield
+
+
 def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:
     """``fn`` mapped over the leading seed axis of the ``batched`` positional arguments; every
     output leaf gets that axis. A block of one seed runs ``fn`` itself on the squeezed
-    arguments instead of ``jax.vmap``: the same arithmetic up to round-off (XLA may pick other
+    arguments instead of ``jax.vmap``, traced under :func:`one_seed_per_device`: the same
+    arithmetic up to round-off (XLA may pick other
     kernels for a batch of one), traced about four times faster (tracing under ``vmap`` passes
     every operation through the batching rules), and on a CPU also compiled faster
     (benchmarks/RESULTS.md, twelfth session)."""
@@ -164,7 +180,9 @@ def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:
         if sizes != {1}:
             return vmapped(*args)
         squeezed = [jax.tree_util.tree_map(lambda x: x[0], a) if b else a for a, b in zip(args, batched)]
-        return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], fn(*squeezed))
+        with one_seed_per_device():
+            out = fn(*squeezed)
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], out)
     return mapped
 
 

@@ -143,8 +143,10 @@ def test_trace_time_choices_follow_the_default_device():
     """A run the runner places on another platform is traced under ``jax.default_device`` of
     that platform: the S-step's form and the physics backend "auto" follow it (a GPU process's
     host-CPU runs trace the CPU's choices, and the other way round), and the simulator cache
-    keeps one plant per resolved backend."""
+    keeps one plant per resolved backend. A program of one seed per device traces the packed
+    forms' products as reductions on a GPU only."""
     from gmr_jax import config, sim, sstep
+    from gmr_jax.policies import base
 
     here = jax.default_backend()
     assert sharding.target_platform() == here
@@ -153,6 +155,9 @@ def test_trace_time_choices_follow_the_default_device():
             assert sharding.target_platform() == platform
             assert sstep.default_impl() == impl
             assert sim.make_sim(config.SimConfig()).backend == backend
+            with sharding.one_seed_per_device():
+                assert base.reduced_products() == (platform == "gpu")
+            assert not base.reduced_products()
     assert sharding.target_platform() == here
     assert sim.make_sim(config.SimConfig()).backend == ("mjx" if here == "gpu" else "mujoco")
 

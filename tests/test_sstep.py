@@ -15,7 +15,7 @@ from jax.flatten_util import ravel_pytree
 from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
 
 from gmr_jax.config import GMRConfig, MLPConfig, SStepConfig
-from gmr_jax.policies import Policy, make_policy, make_sstep_data
+from gmr_jax.policies import Policy, base, make_policy, make_sstep_data
 from gmr_jax.policies.base import column_blocks, join_columns, split_columns, target_logdet
 from gmr_jax.sstep import (adam_corrections, adam_update, default_impl, normalize_weights,
                            set_normalization, sstep)
@@ -346,17 +346,18 @@ def test_training_form_gradient_equals_autodiff(name):
     assert padding.any() and np.all(np.asarray(grad)[padding] == 0.0)
 
 
-def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype):
-    """Two forms' S-steps from the same params, data and key (float64: 3 epochs, unroll 2;
-    float32: 2 epochs); asserts the weights' bound 8·δ·lr·S (``test_packed_sstep_equals_reference``)
-    and the dtypes, and that the weights moved; returns (new form's metrics, reference metrics, δ)."""
+def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype, run=_sstep):
+    """Two forms' S-steps (``run``: the jitted ``sstep``) from the same params, data and key
+    (float64: 3 epochs, unroll 2; float32: 2 epochs); asserts the weights' bound 8·δ·lr·S
+    (``test_packed_sstep_equals_reference``) and the dtypes, and that the weights moved; returns
+    (new form's metrics, reference metrics, δ)."""
     pol, cfg = _policy(name)
     wide = jnp.dtype(dtype) == jnp.float64
     data = jax.tree_util.tree_map(lambda a: a.astype(dtype), _full_data(12 if wide else 13))
     params = pol.init(jax.random.key(2), dX, dU, dtype)
     scfg = SStepConfig(epochs=3, batch_size=20, unroll=2) if wide else SStepConfig(epochs=2, batch_size=20)
-    ref, ref_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl=ref_impl)
-    new, new_m = _sstep(pol, params, data, jax.random.key(3), scfg, impl=new_impl)
+    ref, ref_m = run(pol, params, data, jax.random.key(3), scfg, impl=ref_impl)
+    new, new_m = run(pol, params, data, jax.random.key(3), scfg, impl=new_impl)
     delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(dtype)]
     steps = scfg.epochs * (B // scfg.batch_size)
     assert jax.tree_util.tree_structure(new) == jax.tree_util.tree_structure(ref)
@@ -384,6 +385,44 @@ def test_packed_sstep_equals_reference(name):
     after S steps the weights differ by at most 8δ·lr·S (to first order: over a few steps the
     weights' difference feeds back into the gradients far below δ)."""
     _metrics_agree(*_forms_agree(name, "reference", "packed", jnp.float64))
+
+
+@pytest.mark.parametrize("name", ["mlp", "gmr", "gmr_narrow_uneven"])
+def test_products_as_reductions_give_the_same_gradient(name):
+    """``base.products_as_reductions`` (the packed forms' products as sums of broadcast
+    products, as a GPU traces GMR for one seed per device): the packed form's value, aux and
+    gradient for one minibatch against the same form with dots, within n_path·ε; GMR's products
+    are then no dots at all, while the MLP's form keeps its dots (it declines the reductions)."""
+    pol, cfg = _policy(name)
+    params, batch = _train_batch(pol, _full_data(11, skew=POLICY_CFGS[name][2]))
+    form, key = pol.training, jax.random.key(4)
+    theta = form.pack(params)
+    noise = form.noise(key, 20, theta.dtype) if form.noise is not None else None
+    rows = form.rows(params, batch)
+    outputs, dots = [], []
+    for reduced in (False, True):
+        # a new function per mode: a jit cache is keyed on the function, not on the mode
+        step = lambda t, r, n: form.value_and_grad(params, t, r, n)  # noqa: E731
+        with base.products_as_reductions(reduced):
+            dots.append(str(jax.make_jaxpr(step)(theta, rows, noise)).count("dot_general"))
+            outputs.append(jax.jit(step)(theta, rows, noise))
+    (v_dot, aux_dot), g_dot = outputs[0]
+    (v_red, aux_red), g_red = outputs[1]
+    tol = _n_path(cfg, 20) * EPS[theta.dtype]
+    assert abs(v_red - v_dot) <= tol * abs(v_dot), (v_red, v_dot)
+    for k in aux_dot:
+        assert abs(aux_red[k] - aux_dot[k]) <= tol * abs(v_dot), (k, aux_red[k], aux_dot[k])
+    assert np.max(np.abs(np.asarray(g_red - g_dot))) <= tol * np.max(np.abs(np.asarray(g_dot)))
+    assert dots[0] >= 7 and dots[1] == (dots[0] if name == "mlp" else 0), dots
+
+
+def test_packed_sstep_with_products_as_reductions_equals_reference():
+    """The whole GMR S-step traced with its products as reductions against the reference form,
+    with the bound of ``test_packed_sstep_equals_reference`` (float64)."""
+    with base.products_as_reductions():
+        _metrics_agree(*_forms_agree("gmr", "reference", "packed", jnp.float64,
+                                     run=jax.jit(lambda *a, **k: sstep(*a, **k), static_argnums=(0, 4),
+                                                 static_argnames="impl")))
 
 
 def test_packed_sstep_equals_reference_float32():

@@ -39,6 +39,8 @@ configuration gives the same object and reuses compiled code) or close over it.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from typing import Any, Callable, NamedTuple
 
@@ -397,6 +399,42 @@ def fit_width(h: Array, width: int) -> Array:
     return jnp.pad(h, [(0, 0)] * (h.ndim - 1) + [(0, width - d)])
 
 
+_PRODUCTS_AS_REDUCTIONS = contextvars.ContextVar("products_as_reductions", default=False)
+
+
+@contextlib.contextmanager
+def products_as_reductions(on: bool = True):
+    """Trace the packed forms' small matrix products (``small_product``, ``dense_stack``,
+    ``dense_value_and_grad``) as broadcast products summed over the contracted axis instead of
+    dots. XLA fuses such a sum with the elementwise operations around it (a dot is a kernel of
+    its own): on a GPU, GMR's Adam step of one seed has 28 operations instead of 44 and is 20 %
+    faster (``sharding.one_seed_per_device`` turns it on there; the MLP's form declines it, for
+    which it is slower). With many seeds side by side the same products are large batches, for
+    which dots are faster. The same multiplies, summed in another order.
+
+    The choice is read while tracing, so a function traced under it must not be cached across
+    choices by its arguments alone: a ``custom_vjp`` takes it as an argument (``fused_head``)."""
+    token = _PRODUCTS_AS_REDUCTIONS.set(bool(on))
+    try:
+        yield
+    finally:
+        _PRODUCTS_AS_REDUCTIONS.reset(token)
+
+
+def reduced_products() -> bool:
+    """Whether the packed forms' small products are being traced as reductions
+    (``products_as_reductions``)."""
+    return _PRODUCTS_AS_REDUCTIONS.get()
+
+
+def small_product(a: Array, b: Array, reduced: bool | None = None) -> Array:
+    """a [..., m, k] @ b [..., k, n] -> [..., m, n] (batch axes broadcast), as a dot or as a sum
+    of broadcast products (``reduced``; None: ``reduced_products()``)."""
+    if reduced_products() if reduced is None else reduced:
+        return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+    return jnp.matmul(a, b)
+
+
 def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x: Array,
                 act: Callable, deltas: Array, parts=None):
     """n networks of equal depth side by side on the same input, one batched product per layer.
@@ -440,13 +478,16 @@ def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x
             # outputs contiguous, as every later layer's): jnp.einsum would make x the right
             # operand and form [m, o, b], whose consumers then need transposes
             inputs.append(jnp.broadcast_to(fit_width(x, I), (m,) + x.shape[:-1] + (I,)))
-            product = jnp.swapaxes(lax.dot_general(x, kernel, (((1,), (1,)), ((), ()))), 0, 1)
+            if reduced_products():
+                product = jnp.sum(x[None, :, :, None] * kernel[:, None], axis=2)
+            else:
+                product = jnp.swapaxes(lax.dot_general(x, kernel, (((1,), (1,)), ((), ()))), 0, 1)
         else:
             if last and m != n:
                 # static broadcasts, not jnp.repeat: its gradient would be a scatter-add
                 h = jnp.concatenate([jnp.broadcast_to(h[k], (p,) + h.shape[1:]) for k, p in enumerate(parts)])
             inputs.append(fit_width(h, I))
-            product = jnp.matmul(h, kernel)
+            product = small_product(h, kernel)
         pre = product + W[s: s + m, I:, :o] + deltas[s: s + m, :, :o]
         if last:
             starts = np.cumsum((0,) + parts)
@@ -472,7 +513,11 @@ def dense_value_and_grad(f: Callable, W: Array, batch: int):
     S, _, O = W.shape
     (value, (aux, inputs)), D = jax.value_and_grad(f, has_aux=True)(jnp.zeros((S, batch, O), W.dtype))
     ones = jnp.ones(inputs.shape[:-1] + (1,), inputs.dtype)
-    grad = jnp.einsum("sbi,sbo->sio", jnp.concatenate([inputs, ones], axis=-1), D)
+    X = jnp.concatenate([inputs, ones], axis=-1)
+    if reduced_products():
+        grad = jnp.sum(X[:, :, :, None] * D[:, :, None, :], axis=1)
+    else:
+        grad = jnp.einsum("sbi,sbo->sio", X, D)
     return (value, aux), grad
 
 

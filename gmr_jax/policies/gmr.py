@@ -77,7 +77,7 @@ from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepDat
                                    column_blocks, default_float, dense_chain, dense_entries, dense_layout,
                                    dense_stack, dense_value_and_grad, flax_dense_layers, flax_dense_params,
                                    identity_normalization, join_columns, normalize_input, pack_dense,
-                                   pack_rows, split_columns, squash, symmetrize, target_logdet, unpack_dense,
+                                   pack_rows, reduced_products, small_product, split_columns, squash, symmetrize, target_logdet, unpack_dense,
                                    unpack_rows)
 from gmr_jax.policies.mlp import closed_form_variance
 
@@ -218,15 +218,15 @@ class FusedRows(NamedTuple):
     logdet: Array
 
 
-def _fused_head_fwd(init_var, std_range, offdiag_bound, G, g, full, scale, xs, tgt_mu, prc, K):
+def _fused_head_fwd(init_var, std_range, offdiag_bound, reduced, G, g, full, scale, xs, tgt_mu, prc, K):
     dU, dX = G.shape[-2:]
     L, logdet, (T, V, row_norm, sigma, t) = _cholesky_parts(full, init_var, std_range, offdiag_bound)
     dK = G * scale - K
     # one product gives G x̃ (first column of the top half) and ΔK Σ (the rest of the bottom half)
-    C1 = jnp.matmul(jnp.concatenate([G, dK], axis=-2), xs)
+    C1 = small_product(jnp.concatenate([G, dK], axis=-2), xs, reduced)
     du = C1[..., :dU, 0] + g - tgt_mu
     # one product gives P Δu, P ΔK Σ and P L
-    C2 = jnp.matmul(prc, jnp.concatenate([du[..., None], C1[..., dU:, 1:], L], axis=-1))
+    C2 = small_product(prc, jnp.concatenate([du[..., None], C1[..., dU:, 1:], L], axis=-1), reduced)
     Pdu, PdKS, PL = C2[..., 0], C2[..., 1: 1 + dX], C2[..., 1 + dX:]
     action = jnp.sum(du * Pdu, axis=-1)
     gain = jnp.sum(dK * PdKS, axis=(-2, -1))
@@ -235,7 +235,7 @@ def _fused_head_fwd(init_var, std_range, offdiag_bound, G, g, full, scale, xs, t
     return out, (Pdu, PdKS, PL, tr_rows, xs[..., 0], scale, T, V, row_norm, sigma, t)
 
 
-def _fused_head_bwd(init_var, std_range, offdiag_bound, res, cts):
+def _fused_head_bwd(init_var, std_range, offdiag_bound, reduced, res, cts):
     Pdu, PdKS, PL, tr_rows, xh, scale, T, V, row_norm, sigma, t = res
     ct_action, ct_gain, ct_tr, ct_logdet, ct_du = cts
     dU = V.shape[-1]
@@ -256,14 +256,15 @@ def _fused_head_bwd(init_var, std_range, offdiag_bound, res, cts):
     return g_G, g_du, g_full, None, None, None, None, None
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
-def fused_head(init_var: float, std_range: float, offdiag_bound: float, G, g, full, scale, xs, tgt_mu,
-               prc, K):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2, 3))
+def fused_head(init_var: float, std_range: float, offdiag_bound: float, reduced: bool, G, g, full, scale, xs,
+               tgt_mu, prc, K):
     """The controller terms of the GMR loss per row from the packed head, with two batched
     products and a gradient in closed form (no product and no reduction in the backward pass).
 
     Args:
       init_var, std_range, offdiag_bound: the parameters of ``cholesky_factor``.
+      reduced: the two products as sums of broadcast products (``base.small_product``).
       G: [b, dU, dX], g: [b, dU] the head's gain and offset; full: [b, dU, dU] the Cholesky
         entries r as a lower triangle (``cholesky_from_square``).
       scale: [dX] Ψ_K = G·diag(scale) (ones for raw head coordinates).
@@ -273,7 +274,7 @@ def fused_head(init_var: float, std_range: float, offdiag_bound: float, G, g, fu
        logdet [b] = log|L Lᵀ|, Δu [b, dU]) with Δu = G x̃ + g − tgt_mu, ΔK = G·diag(scale) − K_p:
       ``quadratics`` (the loss's einsums) and ``cholesky_factor`` summed in another order.
     """
-    return _fused_head_fwd(init_var, std_range, offdiag_bound, G, g, full, scale, xs, tgt_mu, prc, K)[0]
+    return _fused_head_fwd(init_var, std_range, offdiag_bound, reduced, G, g, full, scale, xs, tgt_mu, prc, K)[0]
 
 
 fused_head.defvjp(_fused_head_fwd, _fused_head_bwd)
@@ -736,7 +737,7 @@ def _training_form(cfg: GMRConfig, net: SimpleNamespace, terms: SimpleNamespace,
         G, g, square = _split_head(out_head[:, : packed_head_size(dX, dU)], dX, dU)
         scale = jnp.ones_like(params.norm.scale) if cfg.head_coordinates == "raw" else params.norm.scale
         action, gain, tr, logdet, du = fused_head(
-            cfg.init_var, cfg.cov_std_range, cfg.cov_offdiag_bound, G, g,
+            cfg.init_var, cfg.cov_std_range, cfg.cov_offdiag_bound, reduced_products(), G, g,
             square.reshape(square.shape[:-1] + (dU, dU)), scale, rows.xs, rows.tgt_mu, rows.prc, rows.K)
         value, aux = terms.combine(rows, kl, xhat[:, :dX], logdet, action, gain, tr, du, stacked=True)
         return value, (aux, jnp.concatenate(inputs, axis=0))

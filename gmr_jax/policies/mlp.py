@@ -23,7 +23,7 @@ from gmr_jax.config import MLPConfig
 from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, TrainingForm, default_float,
                                    dense_chain, dense_entries, dense_layout, dense_stack, dense_value_and_grad,
                                    flax_dense_layers, flax_dense_params, identity_normalization,
-                                   normalize_input, pack_dense, pack_rows, quadratic_rows, squash, symmetrize,
+                                   normalize_input, pack_dense, pack_rows, products_as_reductions, quadratic_rows, squash, symmetrize,
                                    unpack_dense, unpack_rows, weighted_action_error)
 
 
@@ -156,7 +156,11 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
             value = 0.5 * jnp.mean(quadratic_rows(du, batch.prc))
             return value, ({"action_mse": jnp.mean(jnp.square(du))}, inputs)
 
-        (value, aux), grad = dense_value_and_grad(f, W, rows.shape[0])
+        # Its products stay dots even for one seed on a GPU (``sharding.one_seed_per_device``):
+        # as reductions the MLP's Adam step has 13 operations instead of 20 but is slower
+        # (benchmarks/RESULTS.md, nineteenth session), unlike GMR's.
+        with products_as_reductions(False):
+            (value, aux), grad = dense_value_and_grad(f, W, rows.shape[0])
         return (value, aux), grad.reshape(-1)
 
     training = TrainingForm(pack=pack, unpack=unpack, rows=rows, noise=None,
