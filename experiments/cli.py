@@ -336,6 +336,9 @@ def run_study(args, t_start: float) -> int:
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
+        # GMR's packed S-step traced with its products as reductions (sharding.one_seed_per_device)
+        "gmr_products_as_reductions": (used[0].platform == "gpu"
+                                       and sharding.seeds_per_device(args.seeds, len(used)) == 1),
         "cpu_runs": on_cpu,
         "python": platform.python_version(),
         "jax": jax.__version__,
