@@ -19,8 +19,8 @@ Adam step, the device's busy and idle time, the costliest kernels.
 the default on a GPU; the benchmark's default) beside the reference form it is tested against
 (autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run.
 Each S-step is traced and compiled as the runner does for that many seeds on one device
-(``sharding.one_seed_per_device`` for one seed, ``sharding.compiler_options``); ``--compiler-options runner,none`` adds XLA's defaults in the
-same run. ``--against-float64`` also trains each S-step in float64 from the same data and
+(``sharding.one_seed_per_device`` for one seed, ``sharding.compiler_options``);
+``--compiler-options runner,none`` adds XLA's defaults (traced plainly) in the same run. ``--against-float64`` also trains each S-step in float64 from the same data and
 initial weights, and reports how far the measured precision's trained weights lie from those:
 the forms' and options' round-off, measured against the exact arithmetic's result rather than
 against each other. Every row also counts the operations of the compiled

@@ -139,6 +139,19 @@ def test_compiler_options_by_backend_and_seeds_per_device():
     assert wanted("tpu", 1, "") == {}
 
 
+def test_benchmark_compiler_options_spec():
+    """``benchmarks.sstep --compiler-options`` entries: the runner's options, none, or
+    NAME=VALUE pairs joined by "+" (booleans and integers parsed); a malformed pair is refused."""
+    from benchmarks import sstep as sstep_bench
+
+    assert sstep_bench.compiler_options("runner", 1) == sharding.compiler_options(1)
+    assert sstep_bench.compiler_options("none", 1) == {}
+    assert sstep_bench.compiler_options("a=true+b=10000+c=x+d=False", 1) == {"a": True, "b": 10_000, "c": "x",
+                                                                              "d": False}
+    with pytest.raises(ValueError, match="is not NAME=VALUE"):
+        sstep_bench.compiler_options("threshold", 1)
+
+
 def test_trace_time_choices_follow_the_default_device():
     """A run the runner places on another platform is traced under ``jax.default_device`` of
     that platform: the S-step's form and the physics backend "auto" follow it (a GPU process's

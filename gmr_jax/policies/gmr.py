@@ -77,8 +77,8 @@ from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepDat
                                    column_blocks, default_float, dense_chain, dense_entries, dense_layout,
                                    dense_stack, dense_value_and_grad, flax_dense_layers, flax_dense_params,
                                    identity_normalization, join_columns, normalize_input, pack_dense,
-                                   pack_rows, reduced_products, small_product, split_columns, squash, symmetrize, target_logdet, unpack_dense,
-                                   unpack_rows)
+                                   pack_rows, reduced_products, small_product, split_columns, squash,
+                                   symmetrize, target_logdet, unpack_dense, unpack_rows)
 from gmr_jax.policies.mlp import closed_form_variance
 
 

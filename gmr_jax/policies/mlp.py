@@ -23,8 +23,9 @@ from gmr_jax.config import MLPConfig
 from gmr_jax.policies.base import (Policy, PolicyParams, SStepData, TrainingForm, default_float,
                                    dense_chain, dense_entries, dense_layout, dense_stack, dense_value_and_grad,
                                    flax_dense_layers, flax_dense_params, identity_normalization,
-                                   normalize_input, pack_dense, pack_rows, products_as_reductions, quadratic_rows, squash, symmetrize,
-                                   unpack_dense, unpack_rows, weighted_action_error)
+                                   normalize_input, pack_dense, pack_rows, products_as_reductions,
+                                   quadratic_rows, squash, symmetrize, unpack_dense, unpack_rows,
+                                   weighted_action_error)
 
 
 ACTIVATION_FNS: dict[str, Callable] = {
