@@ -20,10 +20,11 @@ the default on a GPU; the benchmark's default) beside the reference form it is t
 (autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run.
 Each S-step is traced and compiled as the runner does for that many seeds on one device
 (``sharding.one_seed_per_device`` for one seed, ``sharding.compiler_options``);
-``--compiler-options runner,none`` adds XLA's defaults (traced plainly) in the same run. ``--against-float64`` also trains each S-step in float64 from the same data and
-initial weights, and reports how far the measured precision's trained weights lie from those:
-the forms' and options' round-off, measured against the exact arithmetic's result rather than
-against each other. Every row also counts the operations of the compiled
+``--compiler-options runner,none`` adds XLA's defaults (traced plainly) in the same run.
+``--against-float64`` also trains each S-step in float64 from the same data and initial weights,
+and reports how far the measured precision's trained weights lie from those: the forms' and
+options' round-off, measured against the exact arithmetic's result rather than against each
+other. Every row also counts the operations of the compiled
 minibatch loop's body (the while-loop body of the optimised HLO that launches the most matrix
 products; ``body_ops`` by opcode, ``ops_per_step`` = all but parameters, tuples, constants and
 bitcasts, divided by the steps per iteration). On a GPU each of those operations is a kernel
@@ -343,14 +344,14 @@ def _as_float(tree, dtype):
 
 
 def _flat_weights(net, seeds: int) -> jax.Array:
-    """[seeds, n]: each seed's trained weights as one float64 vector."""
-    flat = ravel_pytree(net)[0][None] if seeds == 1 else jax.vmap(lambda n: ravel_pytree(n)[0])(net)
-    return flat.astype(jnp.float64) if jax.config.jax_enable_x64 else flat
+    """[seeds, n]: each seed's trained weights as one vector (in their own dtype)."""
+    return ravel_pytree(net)[0][None] if seeds == 1 else jax.vmap(lambda n: ravel_pytree(n)[0])(net)
 
 
 def _relative_differences(weights, reference) -> dict:
-    """Per seed, max |weights − reference| / max |reference| ([seeds, n] each): the largest and
-    the median over seeds, and the count of seeds above 1e-4."""
+    """Per seed, max |weights − reference| / max |reference| ([seeds, n] each, computed in the
+    reference's dtype): the largest and the median over seeds, and the count of seeds above 1e-4."""
+    weights = weights.astype(reference.dtype)
     per_seed = jnp.max(jnp.abs(weights - reference), axis=1) / jnp.max(jnp.abs(reference), axis=1)
     return {"max_rel_diff": float(jnp.max(per_seed)), "median_rel_diff": float(jnp.median(per_seed)),
             "seeds_rel_diff_above_1e-4": int(jnp.sum(per_seed > 1e-4))}

@@ -337,8 +337,8 @@ def run_study(args, t_start: float) -> int:
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
         # GMR's packed S-step traced with its products as reductions (sharding.one_seed_per_device)
-        "gmr_products_as_reductions": (used[0].platform == "gpu"
-                                       and sharding.seeds_per_device(args.seeds, len(used)) == 1),
+        "gmr_products_as_reductions": sharding.reduced_products_for(
+            sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
         "cpu_runs": on_cpu,
         "python": platform.python_version(),
         "jax": jax.__version__,

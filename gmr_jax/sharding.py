@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import re
 from typing import Callable
 
 import jax
@@ -124,7 +125,9 @@ def wanted_compiler_options(backend: str, seeds_per_device: int, xla_flags: str)
     that ``xla_flags`` names (the user's choice wins)."""
     options = {"cpu": CPU_COMPILER_OPTIONS,
                "gpu": GPU_ONE_SEED_COMPILER_OPTIONS if seeds_per_device == 1 else {}}.get(backend, {})
-    return {name: value for name, value in options.items() if name not in xla_flags}
+    # the flag itself, not one whose name it begins (xla_gpu_enable_triton_gemm_any)
+    return {name: value for name, value in options.items()
+            if not re.search(rf"--{name}(=|\s|$)", xla_flags)}
 
 
 @functools.lru_cache(maxsize=None)
@@ -161,8 +164,14 @@ def one_seed_per_device():
     jit cache key: the default device and the block's shapes."""
     from gmr_jax.policies import base
 
-    with base.products_as_reductions(target_platform() == "gpu"):
+    with base.products_as_reductions(reduced_products_for(1, target_platform())):
         yield
+
+
+def reduced_products_for(seeds_per_device: int, platform: str) -> bool:
+    """Whether a program of ``seeds_per_device`` seeds per device on ``platform`` traces the
+    packed forms' products as reductions: one seed per GPU (:func:`one_seed_per_device`)."""
+    return platform == "gpu" and seeds_per_device == 1
 
 
 def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:

@@ -135,6 +135,7 @@ def test_compiler_options_by_backend_and_seeds_per_device():
     assert wanted("gpu", 2, "") == {} and wanted("gpu", 256, "") == {}
     assert wanted("gpu", 1, "--xla_gpu_enable_triton_gemm=true") == {"xla_gpu_gemm_rewrite_size_threshold": 10_000}
     assert wanted("gpu", 1, "--xla_gpu_gemm_rewrite_size_threshold=100 --xla_gpu_enable_triton_gemm=true") == {}
+    assert wanted("gpu", 1, "--xla_gpu_enable_triton_gemm_any=true") == one_seed  # another flag
     assert wanted("cpu", 1, "") == wanted("cpu", 64, "") == sharding.CPU_COMPILER_OPTIONS
     assert wanted("tpu", 1, "") == {}
 
@@ -170,6 +171,8 @@ def test_trace_time_choices_follow_the_default_device():
             assert sim.make_sim(config.SimConfig()).backend == backend
             with sharding.one_seed_per_device():
                 assert base.reduced_products() == (platform == "gpu")
+            assert sharding.reduced_products_for(1, platform) == (platform == "gpu")
+            assert not sharding.reduced_products_for(2, platform)
             assert not base.reduced_products()
     assert sharding.target_platform() == here
     assert sim.make_sim(config.SimConfig()).backend == ("mjx" if here == "gpu" else "mujoco")
