@@ -19,7 +19,7 @@ Adam step, the device's busy and idle time, the costliest kernels.
 the default on a GPU; the benchmark's default) beside the reference form it is tested against
 (autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run.
 Each S-step is traced and compiled as the runner does for that many seeds on one device
-(``sharding.one_seed_per_device`` for one seed, ``sharding.compiler_options``);
+(``sharding.seed_block``, ``sharding.compiler_options``);
 ``--compiler-options runner,none`` adds XLA's defaults (traced plainly) in the same run.
 ``--against-float64`` also trains each S-step in float64 from the same data and initial weights,
 and reports how far the measured precision's trained weights lie from those: the forms' and
@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -226,8 +227,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
            + ("" if options == "runner" else f"_{options}"))
     options_given = compiler_options(options, args.seeds)
-    # the runner traces a program of one seed per device under its one-seed choices
-    traced_as = (sharding.one_seed_per_device if options == "runner" and args.seeds == 1
+    # the runner traces a program of n seeds per device under its choices for n (seed_block)
+    traced_as = (functools.partial(sharding.seed_block, args.seeds) if options == "runner"
                  else contextlib.nullcontext)
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
                        sstep__adam_entries=adam_entries)

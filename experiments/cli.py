@@ -336,7 +336,7 @@ def run_study(args, t_start: float) -> int:
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
-        # GMR's packed S-step traced with its products as reductions (sharding.one_seed_per_device)
+        # GMR's packed S-step traced with its products as reductions (sharding.seed_block)
         "gmr_products_as_reductions": sharding.reduced_products_for(
             sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
         "cpu_runs": on_cpu,

@@ -89,17 +89,38 @@ class TracingTurns:
 
     Tracing and lowering are Python work under the GIL: concurrent traces only delay each other.
     One at a time, the first run's compilation (which releases the GIL) starts sooner, and with
-    tickets the runs that train longest go first. ``ticket=None`` only excludes the others.
+    tickets the runs that train longest go first. Each of ``runs`` runs holds ticket i for its
+    iteration program and ticket :meth:`later` (i) = i + ``runs`` for its evaluation program,
+    so that every iteration program is traced before any evaluation program. ``ticket=None``
+    only excludes the others. A ticket is used up when its turn ends or by :meth:`release`, so
+    that a run that fails before its turn does not hold the others up.
     """
 
     def __init__(self):
         self._cv = threading.Condition()
+        self._used: set[int] = set()
         self._next = 0
+        self._runs = 0
         self._busy = False
 
-    def reset(self):
+    def reset(self, runs: int = 0):
+        """Start a new set of ``runs`` runs side by side (tickets 0 … 2·runs − 1); 0: runs that
+        do not all start at once, whose evaluation programs then take any free turn (a second
+        round would wait for runs that start only after them)."""
         with self._cv:
-            self._next = 0
+            self._used, self._next, self._runs = set(), 0, runs
+
+    def later(self, ticket: int | None) -> int | None:
+        """The ticket of the second round (evaluation programs) of the run holding ``ticket``."""
+        return None if ticket is None or not self._runs else ticket + self._runs
+
+    def release(self, *tickets: int | None) -> None:
+        """Use up ``tickets`` without a turn (those already used stay used)."""
+        with self._cv:
+            self._used.update(t for t in tickets if t is not None)
+            while self._next in self._used:
+                self._next += 1
+            self._cv.notify_all()
 
     @contextlib.contextmanager
     def __call__(self, ticket: int | None):
@@ -111,9 +132,7 @@ class TracingTurns:
         finally:
             with self._cv:
                 self._busy = False
-                if ticket is not None:
-                    self._next += 1
-                self._cv.notify_all()
+            self.release(ticket)
 
 
 class Scheduler:
@@ -131,12 +150,13 @@ class Scheduler:
       mesh: the 1-D device mesh the runs split their seeds over (``devices``: the first n local
         devices; default all, see :mod:`gmr_jax.sharding`); a run placed on another platform
         (``run``'s ``platform``) uses that platform's mesh, :meth:`mesh_for`.
-      pool: background threads (initial states, robustness compilation, the caller's work).
+      pool: background threads (initial states, robustness programs, the caller's work); a
+        robustness program waits in its thread for its tracing turn.
       stop: set by :meth:`request_stop` (e.g. from a signal handler); runs end after the
         iteration in flight.
     """
 
-    def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 8):
+    def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 16):
         config.check_positive_int("compile_jobs", compile_jobs)
         self.mesh = sharding.seed_mesh(devices)
         self.tracing = TracingTurns()
@@ -417,18 +437,23 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     report = (lambda text: progress_fn({"run": label, "message": text})) if progress_fn else (lambda text: None)
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
-    layout = _Layout(scheduler.mesh_for(platform), len(seeds))  # an unknown platform: before any write
-    if not resume:
-        check_fresh([run_dir])
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps({"seeds": list(seeds), "config": config.to_dict(cfg)}, indent=1))
-    k_init, it_keys = (layout.device(k) for k in seed_keys(cfg, seeds))
-    meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
-    t0 = time.perf_counter()
-    timer = Timer()
-    stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
-    state, history, step, robustness = _prepare(cfg, seeds, layout, k_init, it_keys, ckpt_dir, resume, stop,
-                                                timer, scheduler, ticket, report)
+    try:
+        layout = _Layout(scheduler.mesh_for(platform), len(seeds))  # an unknown platform: before any write
+        if not resume:
+            check_fresh([run_dir])
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.json").write_text(json.dumps({"seeds": list(seeds), "config": config.to_dict(cfg)},
+                                                        indent=1))
+        k_init, it_keys = (layout.device(k) for k in seed_keys(cfg, seeds))
+        meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
+        t0 = time.perf_counter()
+        timer = Timer()
+        stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
+        state, history, step, robustness = _prepare(cfg, seeds, layout, k_init, it_keys, ckpt_dir, resume, stop,
+                                                    timer, scheduler, ticket, report)
+    except BaseException:
+        scheduler.tracing.release(ticket, scheduler.tracing.later(ticket))  # the other runs' turns go on
+        raise
     if step is not None:  # kept rollouts of an earlier, shorter run would outlive its policy
         (run_dir / ROLLOUTS_FILE).unlink(missing_ok=True)
     state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout,
@@ -454,10 +479,11 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     program or None, future of the compiled robustness program or None).
 
     The initial state is computed in the background while this run, in its tracing turn,
-    restores its checkpoint (validated before anything compiles) and traces its programs from
-    the state's shapes; the step program then compiles in a compile slot, the robustness program
-    in the background while the run trains (in a compile slot too, after the programs already
-    waiting for one)."""
+    restores its checkpoint (validated before anything compiles) and traces its step program
+    from the state's shapes; the step program then compiles in a compile slot. The robustness
+    program is traced in the background in the run's later turn (after every run's step
+    program: ``TracingTurns.later``) and compiled while the run trains (in a compile slot too,
+    after the programs already waiting for one)."""
     init_program = _program("init", layout.mesh)
     init = functools.partial(init_program, program_config(cfg))
 
@@ -485,15 +511,19 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
         if len(history) < stop:
             step = _lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler,
                             layout.mesh)
-        if policies.spec_for(cfg) is not None and stop == cfg.iterations:
-            robustness = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler, layout.mesh)
+    later = scheduler.tracing.later(ticket)
+    if policies.spec_for(cfg) is not None and stop == cfg.iterations:
+        def robustness_program():
+            with scheduler.tracing(later):
+                lowered = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler, layout.mesh)
+            # In a slot: beside training, but after the other runs' iteration programs, which then
+            # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
+            return _compiled("robustness", cfg, num, lowered, timer, scheduler, slot=True, mesh=layout.mesh)
+        robustness = scheduler.pool.submit(robustness_program)
+    else:
+        scheduler.tracing.release(later)
     if step is not None:
         step = _compiled("step", cfg, num, step, timer, scheduler, slot=True, mesh=layout.mesh)
-    if robustness is not None:
-        # In a slot: beside training, but after the other runs' iteration programs, which then
-        # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
-        robustness = scheduler.pool.submit(_compiled, "robustness", cfg, num, robustness, timer, scheduler,
-                                           slot=True, mesh=layout.mesh)
     return (state_future.result() if state is None else state), history, step, robustness
 
 
@@ -614,7 +644,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     # The longest runs (a policy's S-step is the slowest, more conditions mean more data) trace
     # first and reach the device first.
     order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
-    scheduler.tracing.reset()
+    scheduler.tracing.reset(len(configs) if not jobs or jobs >= len(configs) else 0)
     with concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool:
         futures = {key: pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                     progress_fn=progress_fn, scheduler=scheduler, ticket=i,

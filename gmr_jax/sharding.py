@@ -154,43 +154,53 @@ def compiler_options(seeds_per_device: int = 1, platform: str | None = None) -> 
     return _accepted(tuple(sorted(wanted.items())), platform)
 
 
+REDUCED_PRODUCTS_MAX_SEEDS = 8
+"""The most seeds per GPU whose programs trace GMR's products as reductions. Measured per Adam
+step of GMR A,B on an H100 (benchmarks/RESULTS.md, nineteenth and twentieth sessions):
+reductions against dots 53 vs 65 µs at 1 seed, 58.9 vs 102.4 at 2, 82.1 vs 103.1 at 8, but
+172.9 vs 135.0 at 32 (the sums grow with the seed batch, a dot's time hardly does)."""
+
+
 @contextlib.contextmanager
-def one_seed_per_device():
-    """Trace-time choices for a program of one seed per device (``over_seed_axis``' block of one
-    seed): on a GPU, the policies' packed S-step forms may trace their small products as sums
-    of broadcast products (``policies.base.products_as_reductions``; GMR's does), which XLA
-    fuses with the operations around them (benchmarks/RESULTS.md, nineteenth session); elsewhere
-    nothing. Every input of that choice (platform, seeds per block) is part of the program's
-    jit cache key: the default device and the block's shapes."""
+def seed_block(seeds: int):
+    """Trace-time choices for a program of ``seeds`` seeds per device (``over_seed_axis``' block):
+    with up to ``REDUCED_PRODUCTS_MAX_SEEDS`` of them on a GPU, the policies' packed S-step forms
+    may trace their small products as sums of broadcast products
+    (``policies.base.products_as_reductions``; GMR's does), which XLA fuses with the operations
+    around them; elsewhere nothing. Every input of that choice (platform, seeds per block) is part
+    of the program's jit cache key: the default device and the block's shapes."""
     from gmr_jax.policies import base
 
-    with base.products_as_reductions(reduced_products_for(1, target_platform())):
+    with base.products_as_reductions(reduced_products_for(seeds, target_platform())):
         yield
 
 
 def reduced_products_for(seeds_per_device: int, platform: str) -> bool:
     """Whether a program of ``seeds_per_device`` seeds per device on ``platform`` traces the
-    packed forms' products as reductions: one seed per GPU (:func:`one_seed_per_device`)."""
-    return platform == "gpu" and seeds_per_device == 1
+    packed forms' products as reductions (:func:`seed_block`)."""
+    return platform == "gpu" and seeds_per_device <= REDUCED_PRODUCTS_MAX_SEEDS
 
 
 def over_seed_axis(fn: Callable, batched: tuple[bool, ...]) -> Callable:
     """``fn`` mapped over the leading seed axis of the ``batched`` positional arguments; every
-    output leaf gets that axis. A block of one seed runs ``fn`` itself on the squeezed
-    arguments instead of ``jax.vmap``, traced under :func:`one_seed_per_device`: the same
-    arithmetic up to round-off (XLA may pick other
-    kernels for a batch of one), traced about four times faster (tracing under ``vmap`` passes
-    every operation through the batching rules), and on a CPU also compiled faster
-    (benchmarks/RESULTS.md, twelfth session)."""
+    output leaf gets that axis, and the whole is traced under :func:`seed_block` of the axis'
+    size. A block of one seed runs ``fn`` itself on the squeezed arguments instead of
+    ``jax.vmap``: the same arithmetic up to round-off (XLA may pick other kernels for a batch of
+    one), traced about four times faster (tracing under ``vmap`` passes every operation through
+    the batching rules), and on a CPU also compiled faster (benchmarks/RESULTS.md, twelfth
+    session)."""
     vmapped = jax.vmap(fn, in_axes=tuple(0 if b else None for b in batched))
 
     def mapped(*args):
         sizes = {leaf.shape[0] for a, b in zip(args, batched) if b for leaf in jax.tree_util.tree_leaves(a)}
-        if sizes != {1}:
-            return vmapped(*args)
-        squeezed = [jax.tree_util.tree_map(lambda x: x[0], a) if b else a for a, b in zip(args, batched)]
-        with one_seed_per_device():
-            out = fn(*squeezed)
+        if len(sizes) != 1:
+            raise ValueError("over_seed_axis: the batched arguments need one leading seed axis of one size, "
+                             f"got sizes {sorted(sizes)}")
+        (size,) = sizes
+        with seed_block(size):
+            if size != 1:
+                return vmapped(*args)
+            out = fn(*[jax.tree_util.tree_map(lambda x: x[0], a) if b else a for a, b in zip(args, batched)])
         return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], out)
     return mapped
 

@@ -12,6 +12,7 @@ was written before, and a resumed run continues correctly.
 | a missing MJCF scene | one line naming the file, exit 1 | test_missing_mjcf_is_one_line |
 | a config.json with an unknown field | one line naming the field | test_config_json_with_an_unknown_field |
 | Ctrl-C / SIGTERM reach the CLI | the scheduler's stop is requested | test_signals_request_a_stop |
+| a run of several side by side fails before its tracing turn | its turns pass on; the others are not held up, the error is raised | test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up |
 """
 
 import dataclasses
@@ -21,6 +22,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 
 import jax
 import numpy as np
@@ -158,6 +160,35 @@ def test_corrupt_newest_checkpoint_falls_back(cfg, whole, scheduler):
     assert messages[1] == "resumed from iteration 2"
     assert (run_dir / "checkpoints" / "3.corrupt").is_dir() and checkpoint.all_steps(run_dir / "checkpoints") == [1, 2, 3]
     _same_history(resumed, result)
+
+
+def test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up(cfg, whole, scheduler, tmp_path):
+    """``run_all``: two runs side by side trace in their turns (both iteration programs, then both
+    robustness programs, ``TracingTurns.later``) and each equals the run alone. A run that fails
+    before its turn (placed on a platform this process does not have) releases both its turns:
+    the other run is not held up, and ``run_all`` raises the failure instead of waiting."""
+    root, result = whole
+    configs = {("A", "mdgps"): cfg, ("B", "mdgps"): cfg}  # the same programs as ``whole``: compiled
+    runs = runner.run_all(configs, SEEDS, tmp_path / "both", scheduler=scheduler)
+    for run in runs.values():
+        _same_history(run, result)
+        for name, value in result["robustness"].items():
+            np.testing.assert_array_equal(run["robustness"][name], value, err_msg=name)
+    outcome = {}
+
+    def failing():
+        try:
+            runner.run_all(configs, SEEDS, tmp_path / "failing", scheduler=scheduler,
+                           platforms={("A", "mdgps"): "tpu"})
+        except BaseException as err:  # noqa: BLE001 (handed to the test's thread)
+            outcome["error"] = err
+
+    thread = threading.Thread(target=failing, daemon=True)
+    thread.start()
+    thread.join(timeout=600)
+    scheduler.stop.clear()
+    assert not thread.is_alive(), "run_all waits for the turn of a run that failed before it"
+    assert isinstance(outcome.get("error"), ValueError) and "platform 'tpu'" in str(outcome["error"])
 
 
 def test_missing_mjcf_is_one_line(tmp_path, capsys):

@@ -131,6 +131,34 @@ def test_tracing_turns_follow_the_tickets():
         pass
 
 
+def test_tracing_turns_second_round_and_released_tickets():
+    """With ``reset(runs)`` every run's second ticket (``later``) comes after all first ones, and
+    a ticket released without a turn (a run that failed before it) holds nobody up. Runs that
+    do not all start at once (``reset(0)``) get no second round."""
+    turns = runner.TracingTurns()
+    turns.reset(2)
+    assert (turns.later(0), turns.later(1), turns.later(None)) == (2, 3, None)
+    entered = []
+
+    def run(ticket, delay):
+        time.sleep(delay)
+        with turns(ticket):
+            entered.append(ticket)
+
+    threads = [threading.Thread(target=run, args=(t, d)) for t, d in ((3, 0.0), (2, 0.0), (0, 0.03))]
+    for th in threads:
+        th.start()
+    time.sleep(0.1)
+    assert entered == [0]  # 2 and 3 wait for ticket 1
+    turns.release(1)
+    for th in threads:
+        th.join(timeout=10)
+    assert entered == [0, 2, 3]
+    turns.release(1, None)  # idempotent
+    turns.reset(0)
+    assert turns.later(0) is None
+
+
 def test_programs_are_compiled_for_the_mesh_of_their_run(scheduler):
     """A run placed on other devices than the default one (``run``'s ``platform``: the host CPU
     beside a GPU) gets programs compiled for its mesh, also where every argument is given as a

@@ -158,7 +158,8 @@ def test_trace_time_choices_follow_the_default_device():
     that platform: the S-step's form and the physics backend "auto" follow it (a GPU process's
     host-CPU runs trace the CPU's choices, and the other way round), and the simulator cache
     keeps one plant per resolved backend. A program of one seed per device traces the packed
-    forms' products as reductions on a GPU only."""
+    forms' products as reductions on a GPU only, and only up to ``REDUCED_PRODUCTS_MAX_SEEDS``
+    seeds per device."""
     from gmr_jax import config, sim, sstep
     from gmr_jax.policies import base
 
@@ -169,10 +170,12 @@ def test_trace_time_choices_follow_the_default_device():
             assert sharding.target_platform() == platform
             assert sstep.default_impl() == impl
             assert sim.make_sim(config.SimConfig()).backend == backend
-            with sharding.one_seed_per_device():
-                assert base.reduced_products() == (platform == "gpu")
-            assert sharding.reduced_products_for(1, platform) == (platform == "gpu")
-            assert not sharding.reduced_products_for(2, platform)
+            most = sharding.REDUCED_PRODUCTS_MAX_SEEDS
+            for seeds in (1, 2, most, most + 1):
+                wanted = platform == "gpu" and seeds <= most
+                with sharding.seed_block(seeds):
+                    assert base.reduced_products() == wanted
+                assert sharding.reduced_products_for(seeds, platform) == wanted
             assert not base.reduced_products()
     assert sharding.target_platform() == here
     assert sim.make_sim(config.SimConfig()).backend == ("mjx" if here == "gpu" else "mujoco")
@@ -211,3 +214,28 @@ def test_one_seed_runs_the_plain_program_and_more_seeds_the_vmapped_one():
     assert out["y"].shape == (1, 2) and out["total"].shape == (1,)
     np.testing.assert_array_equal(out["y"], [[2.0, 6.0]])
     np.testing.assert_array_equal(mapped(two, 2.0)["y"], [[2.0, 6.0], [2.0, -1.0]])
+
+
+def test_over_seed_axis_traces_under_the_choices_of_its_seed_block():
+    """The trace-time choices (``seed_block``) follow the seed block that ``over_seed_axis`` is
+    traced for, on the plain (one seed) and on the vmapped path; seed axes of different sizes
+    are refused in one line."""
+    from gmr_jax.policies import base
+
+    seen = []
+
+    def fn(x):
+        seen.append(base.reduced_products())
+        return x * 2.0
+
+    mapped = sharding.over_seed_axis(fn, (True,))
+    most = sharding.REDUCED_PRODUCTS_MAX_SEEDS
+    with jax.default_device("gpu"):  # only read while tracing: no GPU needed
+        for seeds in (1, 2, most, most + 1):
+            jax.eval_shape(mapped, jax.ShapeDtypeStruct((seeds, 3), jnp.float32))
+    with jax.default_device("cpu"):
+        jax.eval_shape(mapped, jax.ShapeDtypeStruct((2, 3), jnp.float32))
+    assert seen == [True, True, True, False, False]
+    two = sharding.over_seed_axis(lambda x, y: x + y, (True, True))
+    with pytest.raises(ValueError, match=r"one leading seed axis of one size, got sizes \[2, 3\]"):
+        two(jnp.zeros((2, 1)), jnp.zeros((3, 1)))

@@ -157,7 +157,7 @@ def make_mlp_policy(cfg: MLPConfig = MLPConfig()) -> Policy:
             value = 0.5 * jnp.mean(quadratic_rows(du, batch.prc))
             return value, ({"action_mse": jnp.mean(jnp.square(du))}, inputs)
 
-        # Its products stay dots even for one seed on a GPU (``sharding.one_seed_per_device``):
+        # Its products stay dots even for few seeds on a GPU (``sharding.seed_block``):
         # as reductions the MLP's Adam step has 13 operations instead of 20 but is slower
         # (benchmarks/RESULTS.md, nineteenth session), unlike GMR's.
         with products_as_reductions(False):
