@@ -26,6 +26,7 @@ import dataclasses
 import functools
 import json
 import pathlib
+import sys
 import threading
 import time
 from typing import Any, Callable, NamedTuple
@@ -135,6 +136,28 @@ class TracingTurns:
             self.release(ticket)
 
 
+SWITCH_INTERVAL_S = 5e-4
+"""Python's thread switch interval while runs train side by side. A host callback of a run (the C
+MuJoCo rollouts, one per control step of a policy rollout) needs the GIL, and while another
+thread holds it for Python work (tracing another run's programs) it waits up to the interval
+for it: at Python's 5 ms, the default study's first iterations took 8–11 s instead of about 3 s
+with a warm compilation cache (benchmarks/RESULTS.md, twentieth session)."""
+
+
+@contextlib.contextmanager
+def switch_interval(seconds: float | None):
+    """``sys.setswitchinterval(seconds)`` inside the block (None: unchanged), restored after."""
+    if seconds is None:
+        yield
+        return
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(seconds)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
+
+
 class Scheduler:
     """Compile scheduling and the stop request of runs trained in one process.
 
@@ -154,10 +177,16 @@ class Scheduler:
         robustness program waits in its thread for its tracing turn.
       stop: set by :meth:`request_stop` (e.g. from a signal handler); runs end after the
         iteration in flight.
+      switch_interval: Python's thread switch interval (seconds, ``sys.setswitchinterval``)
+        while :func:`run_all` trains runs side by side; None leaves Python's (5 ms).
     """
 
-    def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 16):
+    def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 16,
+                 switch_interval: float | None = SWITCH_INTERVAL_S):
         config.check_positive_int("compile_jobs", compile_jobs)
+        if switch_interval is not None:
+            config.check_positive("switch_interval", switch_interval)
+        self.switch_interval = switch_interval
         self.mesh = sharding.seed_mesh(devices)
         self.tracing = TracingTurns()
         self.compile_slots = threading.BoundedSemaphore(compile_jobs)
@@ -625,7 +654,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       resume: see :func:`run`; without it every run folder must be free of checkpoints.
       jobs: runs trained at once (0: all). Side by side, the runs' XLA compilations use several
         cores and their iterations interleave on the device.
-      scheduler: default a private one with 2 compile jobs.
+      scheduler: default a private one with 2 compile jobs; Python's thread switch interval is
+        its ``switch_interval`` until the runs end.
       progress_fn: see the module docstring; events carry "scenario/algorithm" as ``run``.
       stability: see :func:`run`.
       platforms: {(scenario, algorithm): platform} for runs placed elsewhere than on the
@@ -645,7 +675,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     # first and reach the device first.
     order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
     scheduler.tracing.reset(len(configs) if not jobs or jobs >= len(configs) else 0)
-    with concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool:
+    with (switch_interval(scheduler.switch_interval),
+          concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool):
         futures = {key: pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                     progress_fn=progress_fn, scheduler=scheduler, ticket=i,
                                     label=f"{key[0]}/{key[1]}", stability=stability,

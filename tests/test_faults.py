@@ -164,12 +164,16 @@ def test_corrupt_newest_checkpoint_falls_back(cfg, whole, scheduler):
 
 def test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up(cfg, whole, scheduler, tmp_path):
     """``run_all``: two runs side by side trace in their turns (both iteration programs, then both
-    robustness programs, ``TracingTurns.later``) and each equals the run alone. A run that fails
+    robustness programs, ``TracingTurns.later``) and each equals the run alone; Python's switch
+    interval is the scheduler's while they train, and restored after. A run that fails
     before its turn (placed on a platform this process does not have) releases both its turns:
     the other run is not held up, and ``run_all`` raises the failure instead of waiting."""
     root, result = whole
     configs = {("A", "mdgps"): cfg, ("B", "mdgps"): cfg}  # the same programs as ``whole``: compiled
-    runs = runner.run_all(configs, SEEDS, tmp_path / "both", scheduler=scheduler)
+    intervals, before = set(), sys.getswitchinterval()
+    runs = runner.run_all(configs, SEEDS, tmp_path / "both", scheduler=scheduler,
+                          progress_fn=lambda event: intervals.add(sys.getswitchinterval()))
+    assert intervals == {scheduler.switch_interval} and sys.getswitchinterval() == before
     for run in runs.values():
         _same_history(run, result)
         for name, value in result["robustness"].items():

@@ -2,6 +2,7 @@
 run equals an uninterrupted one, progress reaches the callback, other settings are refused."""
 
 import dataclasses
+import sys
 import threading
 import time
 
@@ -129,6 +130,19 @@ def test_tracing_turns_follow_the_tickets():
             raise RuntimeError("trace failed")
     with turns(1):
         pass
+
+
+def test_scheduler_switch_interval_is_checked():
+    """A switch interval that is not a positive number is refused in one line, before any
+    thread starts; None leaves Python's."""
+    with pytest.raises(ValueError, match="switch_interval=0: must be a positive number"):
+        runner.Scheduler(switch_interval=0)
+    before = sys.getswitchinterval()
+    with runner.switch_interval(None):
+        assert sys.getswitchinterval() == before
+    with runner.switch_interval(1e-3):
+        assert sys.getswitchinterval() == pytest.approx(1e-3)
+    assert sys.getswitchinterval() == before
 
 
 def test_tracing_turns_second_round_and_released_tickets():
