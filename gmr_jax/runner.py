@@ -94,7 +94,8 @@ class TracingTurns:
     iteration program and ticket :meth:`later` (i) = i + ``runs`` for its evaluation program,
     so that every iteration program is traced before any evaluation program. ``ticket=None``
     only excludes the others. A ticket is used up when its turn ends or by :meth:`release`, so
-    that a run that fails before its turn does not hold the others up.
+    that a run that fails before its turn does not hold the others up (a released ticket that
+    still asks for its turn gets any free one).
     """
 
     def __init__(self):
@@ -126,7 +127,9 @@ class TracingTurns:
     @contextlib.contextmanager
     def __call__(self, ticket: int | None):
         with self._cv:
-            self._cv.wait_for(lambda: not self._busy and (ticket is None or self._next == ticket))
+            # a released ticket (its run failed) takes any free turn: its own has passed
+            self._cv.wait_for(lambda: not self._busy and (ticket is None or self._next == ticket
+                                                          or ticket in self._used))
             self._busy = True
         try:
             yield
