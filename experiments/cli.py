@@ -116,6 +116,10 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "whose S-steps are faster on the host than on an H100 and leave the GPU to "
                         "the GMR runs; benchmarks/RESULTS.md). Ignored without a GPU; the choice "
                         "is written to config.json")
+    p.add_argument("--cpu-runs-in-process", action=argparse.BooleanOptionalAction, default=True,
+                   help="train the --cpu-runs in a process of their own (default), so that their "
+                        "Python work does not share the GIL with the GPU runs' host callbacks "
+                        "(runner.run_in_process; benchmarks/RESULTS.md, twentieth session)")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -340,6 +344,7 @@ def run_study(args, t_start: float) -> int:
         "gmr_products_as_reductions": sharding.reduced_products_for(
             sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
         "cpu_runs": on_cpu,
+        "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         "python": platform.python_version(),
         "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in args.configs.items()}}, indent=2))
@@ -352,7 +357,8 @@ def run_study(args, t_start: float) -> int:
         t_runs = time.perf_counter()
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
-                              stability=not args.no_stability, platforms=args.platforms)
+                              stability=not args.no_stability, platforms=args.platforms,
+                              processes=args.platforms if args.cpu_runs_in_process else ())
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()

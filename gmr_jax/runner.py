@@ -645,9 +645,105 @@ def run_folder(out, scenario: str, algorithm: str) -> pathlib.Path:
     return pathlib.Path(out) / f"{scenario}_{algorithm}"
 
 
+class _ChildResult(NamedTuple):
+    """The end of a run in its own process: its result, or the exception it raised."""
+
+    result: dict | None
+    error: BaseException | None
+
+
+def _child_run(job: dict, events, stop_event) -> None:
+    """A run in a process of its own (spawned by :func:`run_in_process`, JAX on the CPU only):
+    progress events and then a :class:`_ChildResult` go to ``events``; ``stop_event`` carries the
+    parent's stop request (Ctrl-C reaches the parent only: the child ignores SIGINT, so that it
+    finishes its iteration in flight like the runs in the parent)."""
+    import pickle
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for name, value in job["jax_config"].items():
+        jax.config.update(name, value)
+    try:
+        with Scheduler(job["compile_jobs"], job["devices"], switch_interval=None) as scheduler:
+            def forward_stop():
+                # polled: a process that exits while waiting on a multiprocessing Event leaves the
+                # parent's ``set`` waiting for it forever
+                while not stop_event.is_set():
+                    time.sleep(0.2)
+                scheduler.request_stop()
+            threading.Thread(target=forward_stop, daemon=True).start()
+            result = run(job["cfg"], job["seeds"], job["run_dir"], resume=job["resume"], progress_fn=events.put,
+                         scheduler=scheduler, label=job["label"], stability=job["stability"])
+        events.put(_ChildResult(result, None))
+    except BaseException as err:  # noqa: BLE001 (raised again in the parent)
+        try:
+            pickle.dumps(err)
+        except Exception:  # noqa: BLE001
+            err = RuntimeError(f"{type(err).__name__}: {err}")
+        events.put(_ChildResult(None, err))
+
+
+# JAX settings a child run takes from its parent (the CLI sets them before the first computation).
+_CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir")
+
+
+def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
+                   progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
+                   label: str = "", stability: bool = True, devices: int = 1) -> dict:
+    """:func:`run` on the host CPU in a process of its own (``multiprocessing``'s spawn, JAX
+    restricted to the CPU, this process's precision and compilation cache): its Python work
+    (tracing, host callbacks, checkpoints) then does not share this interpreter's GIL with the
+    runs on a GPU. Progress events come back to ``progress_fn``; the scheduler's stop request
+    reaches the child (which finishes its iteration in flight); the child's exception is raised
+    here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices."""
+    import multiprocessing
+    import os
+    import queue
+
+    ctx = multiprocessing.get_context("spawn")
+    events, stop_event = ctx.Queue(), ctx.Event()
+    job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
+           "stability": stability, "devices": devices, "compile_jobs": 2,
+           "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
+    child = ctx.Process(target=_child_run, args=(job, events, stop_event), name=f"gmr-jax {label}", daemon=True)
+    with _SPAWN_LOCK:  # the child inherits this environment
+        before = os.environ.get("JAX_PLATFORMS")
+        os.environ["JAX_PLATFORMS"] = "cpu"
+        try:
+            child.start()
+        finally:
+            if before is None:
+                os.environ.pop("JAX_PLATFORMS", None)
+            else:
+                os.environ["JAX_PLATFORMS"] = before
+    try:
+        while True:
+            if scheduler is not None and scheduler.stop.is_set():
+                stop_event.set()
+            try:
+                item = events.get(timeout=0.2)
+            except queue.Empty:
+                if not child.is_alive() and events.empty():
+                    raise RuntimeError(f"{label or run_dir}: its process ended (exit code {child.exitcode}) "
+                                       "without a result") from None
+                continue
+            if isinstance(item, _ChildResult):
+                if item.error is not None:
+                    raise item.error
+                return item.result
+            if progress_fn is not None:
+                progress_fn(item)
+    finally:
+        stop_event.set()
+        child.join(timeout=60)
+
+
+_SPAWN_LOCK = threading.Lock()
+
+
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
             scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None,
-            stability: bool = True, platforms: dict | None = None) -> dict:
+            stability: bool = True, platforms: dict | None = None, processes=()) -> dict:
     """Train several configurations side by side (threads), each into ``run_folder(out, …)``.
 
     Args:
@@ -663,6 +759,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       stability: see :func:`run`.
       platforms: {(scenario, algorithm): platform} for runs placed elsewhere than on the
         scheduler's devices (:func:`run`'s ``platform``, e.g. "cpu"); the others stay there.
+      processes: the (scenario, algorithm) of runs trained on the host CPU in a process of their
+        own (:func:`run_in_process`; their ``platforms`` entry, if any, must be "cpu").
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:
@@ -670,21 +768,34 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     """
     if not resume:
         check_fresh([run_folder(out, *key) for key in configs])
+    processes = set(processes)
+    bad = sorted(f"{s}/{a}" for s, a in processes if (s, a) not in configs or (platforms or {}).get((s, a), "cpu") != "cpu")
+    if bad:
+        raise ValueError(f"processes: {', '.join(bad)} not among the runs, or placed elsewhere than on the CPU")
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
-                           progress_fn=progress_fn, stability=stability, platforms=platforms)
+                           progress_fn=progress_fn, stability=stability, platforms=platforms,
+                           processes=processes)
     # The longest runs (a policy's S-step is the slowest, more conditions mean more data) trace
     # first and reach the device first.
     order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
     scheduler.tracing.reset(len(configs) if not jobs or jobs >= len(configs) else 0)
     with (switch_interval(scheduler.switch_interval),
           concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool):
-        futures = {key: pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
-                                    progress_fn=progress_fn, scheduler=scheduler, ticket=i,
-                                    label=f"{key[0]}/{key[1]}", stability=stability,
-                                    platform=(platforms or {}).get(key))
-                   for i, key in enumerate(order)}
+        futures = {}
+        for i, key in enumerate(order):
+            label = f"{key[0]}/{key[1]}"
+            if key in processes:  # traces in its own process: its turns here pass
+                scheduler.tracing.release(i, scheduler.tracing.later(i))
+                futures[key] = pool.submit(run_in_process, configs[key], seeds, run_folder(out, *key),
+                                           resume=resume, progress_fn=progress_fn, scheduler=scheduler,
+                                           label=label, stability=stability,
+                                           devices=scheduler.mesh_for((platforms or {}).get(key, "cpu")).size)
+            else:
+                futures[key] = pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
+                                           progress_fn=progress_fn, scheduler=scheduler, ticket=i, label=label,
+                                           stability=stability, platform=(platforms or {}).get(key))
         try:
             return {key: futures[key].result() for key in configs}
         except BaseException:

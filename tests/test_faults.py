@@ -12,6 +12,7 @@ was written before, and a resumed run continues correctly.
 | a missing MJCF scene | one line naming the file, exit 1 | test_missing_mjcf_is_one_line |
 | a config.json with an unknown field | one line naming the field | test_config_json_with_an_unknown_field |
 | Ctrl-C / SIGTERM reach the CLI | the scheduler's stop is requested | test_signals_request_a_stop |
+| a run in a process of its own | the same records as here; its progress and errors reach the parent | test_a_run_in_its_own_process_equals_the_run_here |
 | a run of several side by side fails before its tracing turn | its turns pass on; the others are not held up, the error is raised | test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up |
 """
 
@@ -193,6 +194,28 @@ def test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up(cfg
     scheduler.stop.clear()
     assert not thread.is_alive(), "run_all waits for the turn of a run that failed before it"
     assert isinstance(outcome.get("error"), ValueError) and "platform 'tpu'" in str(outcome["error"])
+
+
+def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp_path):
+    """``runner.run_all(..., processes=...)``: a run trained in a spawned process of its own (JAX
+    on the CPU only, this process's precision) gives the same history and robustness as the run
+    here, its progress events arrive here, its checkpoints are in its folder, and its exception
+    is raised here."""
+    root, result = whole
+    events = []
+    runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=scheduler,
+                          progress_fn=events.append, processes=[("A", "mdgps")])
+    run = runs[("A", "mdgps")]
+    _same_history(run, result)
+    for name, value in result["robustness"].items():
+        np.testing.assert_array_equal(run["robustness"][name], value, err_msg=name)
+    assert [e["iteration"] for e in events if "iteration" in e] == [1, 2, 3]
+    assert checkpoint.all_steps(runner.run_folder(tmp_path, "A", "mdgps") / "checkpoints") == [1, 2, 3]
+    with pytest.raises(runner.FolderTaken, match="already hold"):  # the child's error, raised here
+        runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler)
+    with pytest.raises(ValueError, match="processes: B/mdgps not among the runs"):
+        runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path / "other", scheduler=scheduler,
+                       processes=[("B", "mdgps")])
 
 
 def test_missing_mjcf_is_one_line(tmp_path, capsys):
