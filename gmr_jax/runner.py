@@ -13,6 +13,9 @@ orders their Python tracing, bounds how many XLA compilations run at once, keeps
 programs for reuse, and carries the stop request of Ctrl-C / SIGTERM: every run then finishes
 the iteration in flight, writes its checkpoint and raises :class:`Interrupted`.
 
+:func:`run_in_process` trains a run on the host CPU in a spawned process of its own (``run_all``'s
+``processes``), so that its Python work does not share the GIL with the runs on a GPU.
+
 Progress is reported through ``progress_fn(event)``, an event being a dict with ``run`` (the
 run's label) and either ``iteration``, ``iterations`` and ``metrics`` (host numpy arrays, after
 every iteration) or ``message`` (resumed, a corrupt checkpoint set aside). Nothing here prints.
@@ -166,7 +169,8 @@ class Scheduler:
 
     Attributes:
       tracing: :class:`TracingTurns` of the runs.
-      compile_slots: at most ``compile_jobs`` programs (iterations, evaluations) compile at once
+      compile_jobs, compile_slots: at most ``compile_jobs`` programs (iterations, evaluations)
+        compile at once (a run in its own process, :func:`run_in_process`, gets as many)
         (XLA spreads one compilation over the cores, so many at once mostly slow each other
         down). Waiters get a slot in the order they asked (``threading.Condition`` is FIFO), so
         the iteration programs traced first compile before the evaluation programs that runs
@@ -187,6 +191,7 @@ class Scheduler:
     def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 16,
                  switch_interval: float | None = SWITCH_INTERVAL_S):
         config.check_positive_int("compile_jobs", compile_jobs)
+        self.compile_jobs = compile_jobs
         if switch_interval is not None:
             config.check_positive("switch_interval", switch_interval)
         self.switch_interval = switch_interval
@@ -703,7 +708,8 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     ctx = multiprocessing.get_context("spawn")
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
-           "stability": stability, "devices": devices, "compile_jobs": 2,
+           "stability": stability, "devices": devices,
+           "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
     child = ctx.Process(target=_child_run, args=(job, events, stop_event), name=f"gmr-jax {label}", daemon=True)
     with _SPAWN_LOCK:  # the child inherits this environment
