@@ -358,7 +358,7 @@ def run_study(args, t_start: float) -> int:
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
                               stability=not args.no_stability, platforms=args.platforms,
-                              processes=args.platforms if args.cpu_runs_in_process else ())
+                              processes=list(args.platforms) if args.cpu_runs_in_process else [])
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()

@@ -28,7 +28,12 @@ import contextlib
 import dataclasses
 import functools
 import json
+import multiprocessing
+import os
 import pathlib
+import pickle
+import queue
+import signal
 import sys
 import threading
 import time
@@ -662,9 +667,6 @@ def _child_run(job: dict, events, stop_event) -> None:
     progress events and then a :class:`_ChildResult` go to ``events``; ``stop_event`` carries the
     parent's stop request (Ctrl-C reaches the parent only: the child ignores SIGINT, so that it
     finishes its iteration in flight like the runs in the parent)."""
-    import pickle
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     for name, value in job["jax_config"].items():
         jax.config.update(name, value)
@@ -690,6 +692,8 @@ def _child_run(job: dict, events, stop_event) -> None:
 
 # JAX settings a child run takes from its parent (the CLI sets them before the first computation).
 _CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir")
+# Held while a child starts: it inherits the environment with JAX_PLATFORMS=cpu.
+_SPAWN_LOCK = threading.Lock()
 
 
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
@@ -701,10 +705,6 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     runs on a GPU. Progress events come back to ``progress_fn``; the scheduler's stop request
     reaches the child (which finishes its iteration in flight); the child's exception is raised
     here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices."""
-    import multiprocessing
-    import os
-    import queue
-
     ctx = multiprocessing.get_context("spawn")
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
@@ -743,8 +743,6 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
         stop_event.set()
         child.join(timeout=60)
 
-
-_SPAWN_LOCK = threading.Lock()
 
 
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,

@@ -479,7 +479,7 @@ def dense_stack(W: Array, layout: DenseLayout, first: int, n: int, depth: int, x
             # operand and form [m, o, b], whose consumers then need transposes
             inputs.append(jnp.broadcast_to(fit_width(x, I), (m,) + x.shape[:-1] + (I,)))
             if reduced_products():
-                product = jnp.sum(x[None, :, :, None] * kernel[:, None], axis=2)
+                product = small_product(x[None], kernel)
             else:
                 product = jnp.swapaxes(lax.dot_general(x, kernel, (((1,), (1,)), ((), ()))), 0, 1)
         else:
