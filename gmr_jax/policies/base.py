@@ -515,6 +515,11 @@ def dense_value_and_grad(f: Callable, W: Array, batch: int):
     ones = jnp.ones(inputs.shape[:-1] + (1,), inputs.dtype)
     X = jnp.concatenate([inputs, ones], axis=-1)
     if reduced_products():
+        # X and D are materialised first: left to itself, XLA:GPU fuses their producers (the
+        # minibatch's gather, the activations) into the reduction and into Adam's update after it,
+        # recomputing them for every weight, a kernel several times slower than the rest
+        # (benchmarks/RESULTS.md, twenty-first session). The barrier changes no arithmetic.
+        X, D = lax.optimization_barrier((X, D))
         grad = jnp.sum(X[:, :, :, None] * D[:, :, None, :], axis=1)
     else:
         grad = jnp.einsum("sbi,sbo->sio", X, D)

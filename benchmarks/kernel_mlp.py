@@ -1,0 +1,317 @@
+"""The floor of a one-kernel S-step in Pallas (Triton): Adam steps of plain MLPs in one thread block.
+
+``gmr_kernel`` runs GMR's whole S-step in one Pallas (Triton) kernel and takes 127–133 µs per Adam
+step on an H100 (benchmarks/RESULTS.md, tenth session): 23 600 instructions per warp and step,
+among them Adam's update, the head's per-row products and spills. Goal 1 of issue 14 asks for
+20 µs. This benchmark measures what the simplest part of such a kernel costs on its own, so that
+the floor of the approach is a measurement rather than an extrapolation: the minibatch steps of
+``--nets`` independent 3-layer leaky-ReLU MLPs of GMR's widths (input 16, hidden 64, 64, output
+16, the GMR encoder's, decoder's and translation network's shapes up to the head), all reading
+the same gathered minibatch of 20 rows (padded to 32), with a squared-error loss, the backward
+pass written out and Adam (or plain SGD) on every weight, all steps in one kernel launch of one
+thread block::
+
+    python -m benchmarks.kernel_mlp --nets 1,3 --weights global,carry --update adam,sgd --out f.json
+
+``--weights global`` keeps weights and Adam's moments in global memory (read and written every
+step, as ``gmr_kernel`` does); ``carry`` keeps them in the loop's carry (registers, or local
+memory where they spill). Every configuration's final weights are compared with the same steps
+run as an XLA program (``reference``, also timed: its kernels per step set its floor,
+``benchmarks.kernel_floor``). Off a GPU the kernel runs in Pallas's interpreter (slow; a check of
+the arithmetic only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plt
+
+from experiments import cli
+from gmr_jax.adam import adam_corrections, adam_update
+from gmr_jax.config import SStepConfig
+
+WIDTHS = (16, 64, 64, 16)
+"""Input, hidden, hidden, output: GMR's networks' shapes, padded as ``gmr_kernel`` pads them."""
+BATCH, PADDED_BATCH = 20, 32
+SLOPE = 0.2
+Array = jax.Array
+PRECISIONS = {"ieee": lax.Precision.HIGHEST, "tf32x3": lax.DotAlgorithmPreset.TF32_TF32_F32_X3}
+
+
+def init_weights(key, nets: int, dtype) -> list[Array]:
+    """Per net and layer W [fan_in, fan_out] (lecun normal) and b [fan_out] (zeros), flattened in
+    the order net 0 (W0, b0, W1, b1, W2, b2), net 1, …"""
+    out = []
+    for n in range(nets):
+        for i, (a, b) in enumerate(zip(WIDTHS[:-1], WIDTHS[1:])):
+            k = jax.random.fold_in(key, 3 * n + i)
+            out += [jax.random.normal(k, (a, b), dtype) / float(np.sqrt(a)), jnp.zeros((b,), dtype)]
+    return out
+
+
+def _step_math(params, x, y, rho, update: str, cfg: SStepConfig, c1, c2, moments, dot, dot_t, t_dot):
+    """One minibatch step of all nets: params (list of W, b), x [b, 16], y [b, 16], rho [b] (1/20 on
+    real rows, 0 on padding) -> (loss, new params, new moments). The same code runs inside the
+    kernel and in the XLA reference (only the products' form differs)."""
+    grads, loss = [], 0.0
+    for n in range(len(params) // 6):
+        W0, b0, W1, b1, W2, b2 = params[6 * n: 6 * n + 6]
+        p0 = dot(x, W0) + b0[None, :]
+        h0 = jnp.where(p0 >= 0, p0, SLOPE * p0)
+        p1 = dot(h0, W1) + b1[None, :]
+        h1 = jnp.where(p1 >= 0, p1, SLOPE * p1)
+        out = dot(h1, W2) + b2[None, :]
+        r = out - y
+        loss = loss + jnp.sum(rho[:, None] * r * r)
+        d2 = (2.0 * rho)[:, None] * r
+        g1 = dot_t(d2, W2)
+        d1 = jnp.where(p1 >= 0, g1, SLOPE * g1)
+        g0 = dot_t(d1, W1)
+        d0 = jnp.where(p0 >= 0, g0, SLOPE * g0)
+        grads += [t_dot(x, d0), jnp.sum(d0, axis=0), t_dot(h0, d1), jnp.sum(d1, axis=0),
+                  t_dot(h1, d2), jnp.sum(d2, axis=0)]
+    new, new_moments = [], []
+    for k, (theta, g) in enumerate(zip(params, grads)):
+        if update == "adam":
+            mu, nu = moments[2 * k], moments[2 * k + 1]
+            theta, mu, nu = adam_update(cfg, theta, mu, nu, g, c1, c2)
+            new_moments += [mu, nu]
+        else:
+            theta = theta - cfg.lr * g
+        new.append(theta)
+    return loss, new, new_moments
+
+
+def _products(precision):
+    dot = lambda a, w: jnp.dot(a, w, precision=precision)  # noqa: E731
+    dot_t = lambda a, w: lax.dot_general(a, w, (((1,), (1,)), ((), ())), precision=precision)  # noqa: E731
+    t_dot = lambda a, d: lax.dot_general(a, d, (((0,), (0,)), ((), ())), precision=precision)  # noqa: E731
+    return dot, dot_t, t_dot
+
+
+@functools.lru_cache(maxsize=None)
+def kernel_call(nets: int, steps: int, weights: str, update: str, num_warps: int, dot: str, dtype,
+                interpret: bool):
+    """The pallas_call: (idx [steps, 32], c1, c2 [steps], X [B, 16], Y [B, 16], params…, moments…)
+    -> (params…, moments…, loss [steps])."""
+    cfg = SStepConfig()
+    n_params = 6 * nets
+    n_moments = 2 * n_params if update == "adam" else 0
+    precision = lax.Precision.HIGHEST if interpret else PRECISIONS[dot]
+    products = _products(precision)
+
+    def kernel(*refs):
+        idx_ref, c1_ref, c2_ref, x_ref, y_ref = refs[:5]
+        outs = refs[5 + n_params + n_moments:]
+        p_refs, m_refs, loss_ref = outs[:n_params], outs[n_params: n_params + n_moments], outs[-1]
+        rho = jnp.where(lax.broadcasted_iota(jnp.int32, (PADDED_BATCH,), 0) < BATCH, 1.0 / BATCH,
+                        0.0).astype(dtype)
+
+        def math(i, params, moments):
+            idx = idx_ref[i, :]
+            x, y = x_ref[idx, :], y_ref[idx, :]
+            return _step_math(params, x, y, rho, update, cfg, c1_ref[i], c2_ref[i], moments, *products)
+
+        if weights == "global":
+            def step(i, carry):
+                loss, params, moments = math(i, [r[...] for r in p_refs], [r[...] for r in m_refs])
+                for r, v in zip(p_refs + m_refs, params + moments):
+                    r[...] = v
+                loss_ref[i] = loss
+                if not interpret:
+                    plt.debug_barrier()  # the next step reads what every thread wrote
+                return carry
+            lax.fori_loop(0, steps, step, 0)
+        else:
+            def step(i, carry):
+                params, moments = carry
+                loss, params, moments = math(i, params, moments)
+                loss_ref[i] = loss
+                return params, moments
+            params, moments = lax.fori_loop(0, steps, step, ([r[...] for r in p_refs], [r[...] for r in m_refs]))
+            for r, v in zip(p_refs + m_refs, params + moments):
+                r[...] = v
+
+    def out_shapes(args):
+        return [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args] + [jax.ShapeDtypeStruct((steps,), dtype)]
+
+    def call(idx, c1, c2, X, Y, params, moments):
+        state = list(params) + list(moments)
+        first = 5
+        return pl.pallas_call(
+            kernel, out_shape=out_shapes(state), interpret=interpret,
+            input_output_aliases={first + k: k for k in range(len(state))},
+            compiler_params=plt.CompilerParams(num_warps=num_warps, num_stages=1), name="mlp_sstep",
+        )(idx, c1, c2, X, Y, *state)
+
+    return jax.jit(call)
+
+
+@functools.lru_cache(maxsize=None)
+def reference_call(nets: int, steps: int, update: str, dtype):
+    """The same steps as an XLA program: a fori_loop of ``_step_math`` with float32 products."""
+    cfg = SStepConfig()
+    products = _products(lax.Precision.HIGHEST)
+
+    def run(idx, c1, c2, X, Y, params, moments):
+        rho = jnp.where(jnp.arange(PADDED_BATCH) < BATCH, 1.0 / BATCH, 0.0).astype(dtype)
+
+        def step(i, carry):
+            params, moments, losses = carry
+            loss, params, moments = _step_math(params, X[idx[i]], Y[idx[i]], rho, update, cfg, c1[i], c2[i],
+                                               moments, *products)
+            return params, moments, losses.at[i].set(loss)
+
+        params, moments, losses = lax.fori_loop(0, steps, step, (list(params), list(moments),
+                                                                  jnp.zeros((steps,), dtype)))
+        return (*params, *moments, losses)
+
+    return jax.jit(run)
+
+
+@functools.lru_cache(maxsize=None)
+def chain_call(chain: int, steps: int, num_warps: int, dot: str, interpret: bool):
+    """A kernel whose loop body is ``chain`` dependent products h ← leaky_relu(h W), h [32, 64],
+    W [64, 64] (read from the kernel's input for every product): (h, W) -> h."""
+    precision = lax.Precision.HIGHEST if interpret else PRECISIONS[dot]
+
+    def kernel(h_ref, w_ref, o_ref):
+        def body(_, h):
+            for _ in range(chain):
+                pre = jnp.dot(h, w_ref[...], precision=precision)
+                h = jnp.where(pre >= 0, pre, SLOPE * pre)
+            return h
+        o_ref[...] = lax.fori_loop(0, steps, body, h_ref[...])
+
+    return jax.jit(lambda h, w: pl.pallas_call(
+        kernel, out_shape=jax.ShapeDtypeStruct(h.shape, h.dtype), interpret=interpret,
+        compiler_params=plt.CompilerParams(num_warps=num_warps, num_stages=1), name="chain")(h, w))
+
+
+def problem(nets: int, steps: int, update: str, dtype, rows: int = 400, seed: int = 0):
+    """Synthetic data and initial state: (idx, c1, c2, X, Y, params, moments)."""
+    rng = np.random.default_rng(seed)
+    X = jnp.asarray(rng.normal(size=(rows, WIDTHS[0])), dtype)
+    Y = jnp.asarray(np.tanh(rng.normal(size=(rows, WIDTHS[-1]))), dtype)
+    idx = np.concatenate([rng.permutation(rows)[:BATCH] for _ in range(steps)]).reshape(steps, BATCH)
+    idx = jnp.asarray(np.pad(idx, ((0, 0), (0, PADDED_BATCH - BATCH))), jnp.int32)  # pad rows read row 0
+    c1, c2 = adam_corrections(SStepConfig(), steps, dtype)
+    params = init_weights(jax.random.key(seed), nets, dtype)
+    moments = [jnp.zeros_like(p) for p in params for _ in range(2)] if update == "adam" else []
+    return idx, c1, c2, X, Y, params, moments
+
+
+def relative_difference(a, b) -> float:
+    """max |a − b| / max |b| over the weight lists (the measure of benchmarks.sstep)."""
+    a, b = (np.concatenate([np.ravel(np.asarray(t)) for t in x]) for x in (a, b))
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+def _timed(fn, args, repeats):
+    out = jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return out, statistics.median(times)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.kernel_mlp", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--nets", default="1,3", help="comma-separated numbers of MLPs per step")
+    p.add_argument("--weights", default="global,carry", help="comma-separated: global, carry")
+    p.add_argument("--update", default="adam,sgd", help="comma-separated: adam, sgd")
+    p.add_argument("--num-warps", default="4,8", help="comma-separated warps per thread block")
+    p.add_argument("--dot", default="tf32x3", help="comma-separated: " + ", ".join(PRECISIONS))
+    p.add_argument("--chain", default="", help="comma-separated chain lengths: also time a kernel of "
+                   "that many dependent products per loop iteration (the in-kernel cost of one product)")
+    p.add_argument("--steps", type=int, default=2000, help="Adam steps per launch")
+    p.add_argument("--repeats", type=int, default=3, help="timed calls (median)")
+    p.add_argument("--out", help="write the results as JSON to this file")
+    args = p.parse_args(argv)
+    cli.setup_jax("float32")
+    dtype = jnp.float32
+    dev = jax.devices()[0]
+    interpret = dev.platform != "gpu"
+    env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "platform": dev.platform,
+           "jax": jax.__version__, "python": platform.python_version(), "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+           "interpret": interpret}
+    print(f"Device: {env['device']}, jax {env['jax']}" + (" (Pallas interpreter)" if interpret else ""), flush=True)
+    rows = []
+    split = lambda s: [v for v in s.split(",") if v]  # noqa: E731
+    for nets in [int(n) for n in split(args.nets)]:
+        for update in split(args.update):
+            prob = problem(nets, args.steps, update, dtype)
+            ref_out, ref_s = _timed(reference_call(nets, args.steps, update, dtype), prob, args.repeats)
+            n_params = 6 * nets
+            ref_params = ref_out[:n_params]
+            rows.append({"form": "reference", "nets": nets, "update": update,
+                         "us_per_step": 1e6 * ref_s / args.steps})
+            print(f"nets {nets} {update:4s} reference (XLA)            : {rows[-1]['us_per_step']:8.2f} µs/step",
+                  flush=True)
+            for weights in split(args.weights):
+                for warps in [int(w) for w in split(args.num_warps)]:
+                    for dot in split(args.dot):
+                        fn = kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret)
+                        t0 = time.perf_counter()
+                        try:
+                            out, s = _timed(fn, prob, args.repeats)
+                        except Exception as e:  # noqa: BLE001 (a configuration Triton rejects is a result)
+                            print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot}: failed: "
+                                  f"{type(e).__name__}: {str(e).splitlines()[0][:200]}", flush=True)
+                            rows.append({"form": "kernel", "nets": nets, "update": update, "weights": weights,
+                                         "num_warps": warps, "dot": dot, "error": str(e)[:2000]})
+                            continue
+                        diff = relative_difference(out[:n_params], ref_params)
+                        loss_diff = float(np.max(np.abs(np.asarray(out[-1]) - np.asarray(ref_out[-1]))))
+                        rows.append({"form": "kernel", "nets": nets, "update": update, "weights": weights,
+                                     "num_warps": warps, "dot": dot, "us_per_step": 1e6 * s / args.steps,
+                                     "first_call_s": time.perf_counter() - t0,
+                                     "max_rel_diff_vs_reference": diff, "max_loss_diff_vs_reference": loss_diff})
+                        print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot:6s}: "
+                              f"{rows[-1]['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}",
+                              flush=True)
+    chains = []
+    for chain in [int(c) for c in split(args.chain)]:
+        rng = np.random.default_rng(0)
+        h = jnp.asarray(rng.normal(size=(PADDED_BATCH, 64)), dtype)
+        w = jnp.asarray(np.linalg.qr(rng.normal(size=(64, 64)))[0], dtype)  # keeps h's scale
+        for warps in [int(w) for w in split(args.num_warps)]:
+            for dot in split(args.dot):
+                _, s = _timed(chain_call(chain, args.steps, warps, dot, interpret), (h, w), args.repeats)
+                chains.append({"chain": chain, "num_warps": warps, "dot": dot,
+                               "us_per_iteration": 1e6 * s / args.steps})
+                print(f"chain {chain:3d} {warps:2d} warps {dot:6s}: {chains[-1]['us_per_iteration']:8.2f} µs per "
+                      f"loop iteration", flush=True)
+    fits = {}
+    for warps in [int(w) for w in split(args.num_warps)]:
+        for dot in split(args.dot):
+            pts = [(c["chain"], c["us_per_iteration"]) for c in chains if (c["num_warps"], c["dot"]) == (warps, dot)]
+            if len(pts) >= 2:
+                slope, intercept = np.polyfit(*zip(*pts), 1)
+                fits[f"{warps}_{dot}"] = {"us_per_product": float(slope), "us_per_iteration_besides": float(intercept)}
+                print(f"in-kernel floor, {warps} warps {dot}: {slope:.3f} µs per dependent product, "
+                      f"{intercept:.2f} µs per loop iteration besides", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"env": env, "args": vars(args), "rows": rows, "chains": chains, "chain_fits": fits}, f,
+                      indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
