@@ -305,6 +305,32 @@ def setup_jax(precision: str, autotune: bool = False, deterministic: bool = True
     return precision
 
 
+def host_cpu(cpuinfo: str | None = None) -> dict:
+    """The host CPU as ``config.json`` records it: {"model": model name, "family", "model_number",
+    "avx512": bool} from Linux's /proc/cpuinfo (``cpuinfo``: that file's text, for tests), or
+    {"model": platform.processor()} where there is none.
+
+    XLA:CPU compiles for the host's vector instructions, so float64 round-off, and what training
+    amplifies from it, can differ between CPU families (benchmarks/RESULTS.md, twenty-first
+    session): records are comparable bit for bit only between runs on the same CPU."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = pathlib.Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return {"model": platform.processor() or platform.machine()}
+    first = {}
+    for line in cpuinfo.splitlines():
+        if not line.strip():
+            if first:
+                break  # the first processor's block describes the CPU
+            continue
+        key, _, value = line.partition(":")
+        first.setdefault(key.strip(), value.strip())
+    return {"model": first.get("model name", platform.processor() or platform.machine()),
+            "family": first.get("cpu family"), "model_number": first.get("model"),
+            "avx512": any(flag.startswith("avx512") for flag in first.get("flags", "").split())}
+
+
 def _stop_on_signals(scheduler: runner.Scheduler):
     """Ctrl-C / SIGTERM: the runs finish the iteration in flight and write its checkpoint; a
     second Ctrl-C aborts at once."""
@@ -345,6 +371,7 @@ def run_study(args, t_start: float) -> int:
             sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
         "cpu_runs": on_cpu,
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
+        "host_cpu": host_cpu(),
         "python": platform.python_version(),
         "jax": jax.__version__,
         "runs": {f"{s}/{a}": config.to_dict(c) for (s, a), c in args.configs.items()}}, indent=2))

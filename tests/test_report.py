@@ -215,3 +215,19 @@ def test_every_ablation_cell_is_a_valid_configuration_of_the_cli():
             assert (cfgs == base) == (args == ""), (alg, name)
             seen += 1
     assert seen >= 10
+
+
+def test_host_cpu_reads_the_first_processor_of_cpuinfo():
+    """config.json's ``host_cpu``: the first processor block of /proc/cpuinfo, AVX-512 from its flags."""
+    from experiments import cli
+
+    text = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel\t\t: 2\n"
+            "model name\t: AMD EPYC 9B45\nflags\t\t: fpu sse2 avx2 avx512f avx512bw\n\n"
+            "processor\t: 1\ncpu family\t: 25\nmodel name\t: other\nflags\t\t: fpu\n")
+    assert cli.host_cpu(text) == {"model": "AMD EPYC 9B45", "family": "26", "model_number": "2",
+                                  "avx512": True}
+    intel = "processor\t: 0\ncpu family\t: 6\nmodel\t\t: 85\nmodel name\t: Intel Xeon\nflags\t\t: sse2 avx2\n"
+    assert cli.host_cpu(intel)["avx512"] is False
+    assert cli.host_cpu(intel)["model"] == "Intel Xeon"
+    # this machine's, whatever it is: a model name is always there
+    assert isinstance(cli.host_cpu()["model"], str)
