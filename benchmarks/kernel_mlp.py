@@ -48,6 +48,8 @@ BATCH, PADDED_BATCH = 20, 32
 SLOPE = 0.2
 Array = jax.Array
 PRECISIONS = {"ieee": lax.Precision.HIGHEST, "tf32x3": lax.DotAlgorithmPreset.TF32_TF32_F32_X3}
+WEIGHTS = ("global", "carry")
+UPDATES = ("adam", "sgd")
 
 
 def init_weights(key, nets: int, dtype) -> list[Array]:
@@ -62,9 +64,13 @@ def init_weights(key, nets: int, dtype) -> list[Array]:
 
 
 def _step_math(params, x, y, rho, update: str, cfg: SStepConfig, c1, c2, moments, dot, dot_t, t_dot):
-    """One minibatch step of all nets: params (list of W, b), x [b, 16], y [b, 16], rho [b] (1/20 on
-    real rows, 0 on padding) -> (loss, new params, new moments). The same code runs inside the
-    kernel and in the XLA reference (only the products' form differs)."""
+    """One minibatch step of all nets -> (loss [], new params, new moments).
+
+    params: per net [W0 [16, 64], b0 [64], W1 [64, 64], b1 [64], W2 [64, 16], b2 [16]]; x, y
+    [b, 16] the minibatch; rho [b] (1/20 on real rows, 0 on padding); c1, c2 [] Adam's bias
+    corrections of this step; moments: Adam's (μ, ν) per parameter, in parameter order (empty for
+    SGD); dot, dot_t, t_dot: a·w, a·wᵀ, aᵀ·d. The same code runs inside the kernel and in the XLA
+    reference (only the products' precision differs)."""
     grads, loss = [], 0.0
     for n in range(len(params) // 6):
         W0, b0, W1, b1, W2, b2 = params[6 * n: 6 * n + 6]
@@ -106,9 +112,13 @@ def kernel_call(nets: int, steps: int, weights: str, update: str, num_warps: int
                 interpret: bool):
     """The pallas_call: (idx [steps, 32], c1, c2 [steps], X [B, 16], Y [B, 16], params…, moments…)
     -> (params…, moments…, loss [steps])."""
+    if dot not in PRECISIONS or weights not in WEIGHTS or update not in UPDATES:
+        raise ValueError(f"kernel_mlp: dot, weights, update must be in {tuple(PRECISIONS)}, {WEIGHTS}, "
+                         f"{UPDATES}; got {dot!r}, {weights!r}, {update!r}")
     cfg = SStepConfig()
     n_params = 6 * nets
     n_moments = 2 * n_params if update == "adam" else 0
+    # the interpreter (off a GPU) has no TF32 algorithms and ignores num_warps
     precision = lax.Precision.HIGHEST if interpret else PRECISIONS[dot]
     products = _products(precision)
 
@@ -127,6 +137,8 @@ def kernel_call(nets: int, steps: int, weights: str, update: str, num_warps: int
         if weights == "global":
             def step(i, carry):
                 loss, params, moments = math(i, [r[...] for r in p_refs], [r[...] for r in m_refs])
+                if not interpret:
+                    plt.debug_barrier()  # every thread has read this step's weights
                 for r, v in zip(p_refs + m_refs, params + moments):
                     r[...] = v
                 loss_ref[i] = loss
@@ -140,12 +152,14 @@ def kernel_call(nets: int, steps: int, weights: str, update: str, num_warps: int
                 loss, params, moments = math(i, params, moments)
                 loss_ref[i] = loss
                 return params, moments
-            params, moments = lax.fori_loop(0, steps, step, ([r[...] for r in p_refs], [r[...] for r in m_refs]))
+            init = ([r[...] for r in p_refs], [r[...] for r in m_refs])
+            params, moments = lax.fori_loop(0, steps, step, init)
             for r, v in zip(p_refs + m_refs, params + moments):
                 r[...] = v
 
     def out_shapes(args):
-        return [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args] + [jax.ShapeDtypeStruct((steps,), dtype)]
+        return ([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
+                + [jax.ShapeDtypeStruct((steps,), dtype)])
 
     def call(idx, c1, c2, X, Y, params, moments):
         state = list(params) + list(moments)
@@ -170,8 +184,8 @@ def reference_call(nets: int, steps: int, update: str, dtype):
 
         def step(i, carry):
             params, moments, losses = carry
-            loss, params, moments = _step_math(params, X[idx[i]], Y[idx[i]], rho, update, cfg, c1[i], c2[i],
-                                               moments, *products)
+            loss, params, moments = _step_math(params, X[idx[i]], Y[idx[i]], rho, update, cfg, c1[i],
+                                               c2[i], moments, *products)
             return params, moments, losses.at[i].set(loss)
 
         params, moments, losses = lax.fori_loop(0, steps, step, (list(params), list(moments),
@@ -214,27 +228,110 @@ def problem(nets: int, steps: int, update: str, dtype, rows: int = 400, seed: in
 
 
 def relative_difference(a, b) -> float:
-    """max |a − b| / max |b| over the weight lists (the measure of benchmarks.sstep)."""
+    """max |a − b| / max |b| over two lists of arrays (the measure of benchmarks.sstep)."""
     a, b = (np.concatenate([np.ravel(np.asarray(t)) for t in x]) for x in (a, b))
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
+def first_divergence(loss, ref, rtol: float = 1e-5) -> int | None:
+    """The first step whose loss differs from the reference's by more than ``rtol`` relative
+    (None if none does): where two runs of the same steps part."""
+    loss, ref = np.asarray(loss), np.asarray(ref)
+    bad = np.flatnonzero(np.abs(loss - ref) > rtol * np.abs(ref))
+    return int(bad[0]) if len(bad) else None
+
+
 def _timed(fn, args, repeats):
+    """(output, seconds of the first call (compilation included), median seconds of ``repeats`` more)."""
+    t0 = time.perf_counter()
     out = jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
+    return out, first, statistics.median(times)
+
+
+def _split(text: str) -> list[str]:
+    return [v for v in text.split(",") if v]
+
+
+def time_kernels(args, dtype, interpret: bool) -> list[dict]:
+    """Every (nets, update) with its XLA reference and every (weights, warps, dot) kernel of it."""
+    rows = []
+    for nets in [int(n) for n in _split(args.nets)]:
+        for update in _split(args.update):
+            prob = problem(nets, args.steps, update, dtype)
+            ref_out, _, ref_s = _timed(reference_call(nets, args.steps, update, dtype), prob, args.repeats)
+            n_params = 6 * nets
+            rows.append({"form": "reference", "nets": nets, "update": update,
+                         "us_per_step": 1e6 * ref_s / args.steps})
+            print(f"nets {nets} {update:4s} reference (XLA)            : "
+                  f"{rows[-1]['us_per_step']:8.2f} µs/step", flush=True)
+            for weights in _split(args.weights):
+                for warps in [int(w) for w in _split(args.num_warps)]:
+                    for dot in _split(args.dot):
+                        row = {"form": "kernel", "nets": nets, "update": update, "weights": weights,
+                               "num_warps": warps, "dot": dot}
+                        fn = kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret)
+                        try:
+                            out, first_s, s = _timed(fn, prob, args.repeats)
+                        except Exception as e:  # noqa: BLE001 (a configuration Triton rejects is a result)
+                            print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot}: failed: "
+                                  f"{type(e).__name__}: {str(e).splitlines()[0][:200]}", flush=True)
+                            rows.append({**row, "error": str(e)[:2000]})
+                            continue
+                        diff = relative_difference(out[:n_params], ref_out[:n_params])
+                        row.update({"us_per_step": 1e6 * s / args.steps, "first_call_s": first_s,
+                                    "max_rel_diff_vs_reference": diff,
+                                    "max_loss_diff_vs_reference": float(np.max(np.abs(
+                                        np.asarray(out[-1]) - np.asarray(ref_out[-1])))),
+                                    "first_step_loss_differs": first_divergence(out[-1], ref_out[-1])})
+                        rows.append(row)
+                        print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot:6s}: "
+                              f"{row['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}, losses part "
+                              f"at step {row['first_step_loss_differs']}", flush=True)
+    return rows
+
+
+def time_chains(args, dtype, interpret: bool) -> tuple[list[dict], dict]:
+    """The chain kernels of every length, warps and dot, and per (warps, dot) the least-squares
+    line of µs per loop iteration over the chain's length: its slope is one dependent product."""
+    chains = []
+    rng = np.random.default_rng(0)
+    h = jnp.asarray(rng.normal(size=(PADDED_BATCH, 64)), dtype)
+    # orthogonal: h shrinks through the leaky ReLUs and never overflows (the products' time does
+    # not depend on the values)
+    w = jnp.asarray(np.linalg.qr(rng.normal(size=(64, 64)))[0], dtype)
+    for chain in [int(c) for c in _split(args.chain)]:
+        for warps in [int(n) for n in _split(args.num_warps)]:
+            for dot in _split(args.dot):
+                _, _, s = _timed(chain_call(chain, args.steps, warps, dot, interpret), (h, w), args.repeats)
+                chains.append({"chain": chain, "num_warps": warps, "dot": dot,
+                               "us_per_iteration": 1e6 * s / args.steps})
+                print(f"chain {chain:3d} {warps:2d} warps {dot:6s}: "
+                      f"{chains[-1]['us_per_iteration']:8.2f} µs per loop iteration", flush=True)
+    fits = {}
+    for warps in [int(n) for n in _split(args.num_warps)]:
+        for dot in _split(args.dot):
+            pts = [(c["chain"], c["us_per_iteration"]) for c in chains if (c["num_warps"], c["dot"]) == (warps, dot)]
+            if len(pts) >= 2:
+                slope, intercept = np.polyfit(*zip(*pts), 1)
+                fits[f"{warps}_{dot}"] = {"us_per_product": float(slope),
+                                          "us_per_iteration_besides": float(intercept)}
+                print(f"in-kernel floor, {warps} warps {dot}: {slope:.3f} µs per dependent product, "
+                      f"{intercept:.2f} µs per loop iteration besides", flush=True)
+    return chains, fits
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.kernel_mlp", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--nets", default="1,3", help="comma-separated numbers of MLPs per step")
-    p.add_argument("--weights", default="global,carry", help="comma-separated: global, carry")
-    p.add_argument("--update", default="adam,sgd", help="comma-separated: adam, sgd")
+    p.add_argument("--weights", default="global,carry", help="comma-separated: " + ", ".join(WEIGHTS))
+    p.add_argument("--update", default="adam,sgd", help="comma-separated: " + ", ".join(UPDATES))
     p.add_argument("--num-warps", default="4,8", help="comma-separated warps per thread block")
     p.add_argument("--dot", default="tf32x3", help="comma-separated: " + ", ".join(PRECISIONS))
     p.add_argument("--chain", default="", help="comma-separated chain lengths: also time a kernel of "
@@ -243,69 +340,20 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3, help="timed calls (median)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
+    for name, allowed in (("dot", PRECISIONS), ("weights", WEIGHTS), ("update", UPDATES)):
+        bad = [v for v in _split(getattr(args, name)) if v not in allowed]
+        if bad:
+            p.error(f"--{name} {','.join(bad)}: allowed values are {', '.join(allowed)}")
     cli.setup_jax("float32")
     dtype = jnp.float32
     dev = jax.devices()[0]
     interpret = dev.platform != "gpu"
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "platform": dev.platform,
-           "jax": jax.__version__, "python": platform.python_version(), "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
-           "interpret": interpret}
+           "jax": jax.__version__, "python": platform.python_version(),
+           "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "interpret": interpret}
     print(f"Device: {env['device']}, jax {env['jax']}" + (" (Pallas interpreter)" if interpret else ""), flush=True)
-    rows = []
-    split = lambda s: [v for v in s.split(",") if v]  # noqa: E731
-    for nets in [int(n) for n in split(args.nets)]:
-        for update in split(args.update):
-            prob = problem(nets, args.steps, update, dtype)
-            ref_out, ref_s = _timed(reference_call(nets, args.steps, update, dtype), prob, args.repeats)
-            n_params = 6 * nets
-            ref_params = ref_out[:n_params]
-            rows.append({"form": "reference", "nets": nets, "update": update,
-                         "us_per_step": 1e6 * ref_s / args.steps})
-            print(f"nets {nets} {update:4s} reference (XLA)            : {rows[-1]['us_per_step']:8.2f} µs/step",
-                  flush=True)
-            for weights in split(args.weights):
-                for warps in [int(w) for w in split(args.num_warps)]:
-                    for dot in split(args.dot):
-                        fn = kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret)
-                        t0 = time.perf_counter()
-                        try:
-                            out, s = _timed(fn, prob, args.repeats)
-                        except Exception as e:  # noqa: BLE001 (a configuration Triton rejects is a result)
-                            print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot}: failed: "
-                                  f"{type(e).__name__}: {str(e).splitlines()[0][:200]}", flush=True)
-                            rows.append({"form": "kernel", "nets": nets, "update": update, "weights": weights,
-                                         "num_warps": warps, "dot": dot, "error": str(e)[:2000]})
-                            continue
-                        diff = relative_difference(out[:n_params], ref_params)
-                        loss_diff = float(np.max(np.abs(np.asarray(out[-1]) - np.asarray(ref_out[-1]))))
-                        rows.append({"form": "kernel", "nets": nets, "update": update, "weights": weights,
-                                     "num_warps": warps, "dot": dot, "us_per_step": 1e6 * s / args.steps,
-                                     "first_call_s": time.perf_counter() - t0,
-                                     "max_rel_diff_vs_reference": diff, "max_loss_diff_vs_reference": loss_diff})
-                        print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot:6s}: "
-                              f"{rows[-1]['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}",
-                              flush=True)
-    chains = []
-    for chain in [int(c) for c in split(args.chain)]:
-        rng = np.random.default_rng(0)
-        h = jnp.asarray(rng.normal(size=(PADDED_BATCH, 64)), dtype)
-        w = jnp.asarray(np.linalg.qr(rng.normal(size=(64, 64)))[0], dtype)  # keeps h's scale
-        for warps in [int(w) for w in split(args.num_warps)]:
-            for dot in split(args.dot):
-                _, s = _timed(chain_call(chain, args.steps, warps, dot, interpret), (h, w), args.repeats)
-                chains.append({"chain": chain, "num_warps": warps, "dot": dot,
-                               "us_per_iteration": 1e6 * s / args.steps})
-                print(f"chain {chain:3d} {warps:2d} warps {dot:6s}: {chains[-1]['us_per_iteration']:8.2f} µs per "
-                      f"loop iteration", flush=True)
-    fits = {}
-    for warps in [int(w) for w in split(args.num_warps)]:
-        for dot in split(args.dot):
-            pts = [(c["chain"], c["us_per_iteration"]) for c in chains if (c["num_warps"], c["dot"]) == (warps, dot)]
-            if len(pts) >= 2:
-                slope, intercept = np.polyfit(*zip(*pts), 1)
-                fits[f"{warps}_{dot}"] = {"us_per_product": float(slope), "us_per_iteration_besides": float(intercept)}
-                print(f"in-kernel floor, {warps} warps {dot}: {slope:.3f} µs per dependent product, "
-                      f"{intercept:.2f} µs per loop iteration besides", flush=True)
+    rows = time_kernels(args, dtype, interpret)
+    chains, fits = time_chains(args, dtype, interpret)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"env": env, "args": vars(args), "rows": rows, "chains": chains, "chain_fits": fits}, f,

@@ -155,12 +155,10 @@ def compiler_options(seeds_per_device: int = 1, platform: str | None = None) -> 
 
 
 REDUCED_PRODUCTS_MAX_SEEDS = 32
-"""The most seeds per GPU whose programs trace GMR's products as reductions. Measured per Adam
-step of GMR A,B on an H100 (benchmarks/RESULTS.md, nineteenth to twenty-first sessions), since
-the weight gradient's operands are materialised (``policies.base.dense_value_and_grad``):
-reductions against dots 44 vs 65 µs at 1 seed, 64.1 vs 103.1 at 8, 79.3 vs 110.8 at 16, 116.5 vs
-129.3 at 32, but 194.1 vs 181.5 at 64 (the sums grow with the seed batch, a dot's time hardly
-does)."""
+"""The most seeds per GPU whose programs trace GMR's products as reductions: measured per Adam step
+of GMR A,B on an H100 in float32, reductions are faster than dots up to 32 seeds per GPU and
+slower at 64 (the sums grow with the seed batch, a dot's time hardly does; benchmarks/RESULTS.md,
+nineteenth to twenty-first sessions; 33–63 seeds and float64 beyond one seed not measured)."""
 
 
 @contextlib.contextmanager

@@ -408,7 +408,7 @@ def products_as_reductions(on: bool = True):
     ``dense_value_and_grad``) as broadcast products summed over the contracted axis instead of
     dots. XLA fuses such a sum with the elementwise operations around it (a dot is a kernel of
     its own): on a GPU, GMR's Adam step of one seed has 28 operations instead of 44 and is 20 %
-    faster, and up to 8 seeds per GPU also faster than dots (``sharding.seed_block`` turns it on
+    faster, and up to 32 seeds per GPU also faster than dots (``sharding.seed_block`` turns it on
     there; the MLP's form declines it, for which it is slower). With many seeds side by side the
     same products are large batches, for which dots are faster. The same multiplies, summed in another order.
 

@@ -17,11 +17,10 @@ instructions issued per cycle (Nsight Compute). Compiled off the device
 (``python -m benchmarks.kernel_sass``), a step is about 23 600 instructions per warp, among them
 667 barriers and 2 300 spill loads and stores; Adam's update of the padded θ, the translation
 network's backward pass and the per-row products ``rowwise`` and ``left`` are the costliest
-lines. It is therefore opt-in (``impl="kernel"``). No rewrite of it in Triton can reach the
-packed form's 44 µs by much: ``python -m benchmarks.kernel_mlp`` measures 0.9 µs per dependent
-product inside such a kernel (``tl.dot`` passes its operands through shared memory with a
-block-wide barrier) and 46 µs per Adam step for GMR's three networks alone with the simplest
-loss (benchmarks/RESULTS.md, twenty-first session).
+lines. It is therefore opt-in (``impl="kernel"``). A rewrite in Triton cannot beat the packed
+form either: ``python -m benchmarks.kernel_mlp`` measures what one dependent product costs inside
+such a kernel, and GMR's three networks alone with the simplest loss already take longer per
+Adam step than the packed form's whole step (benchmarks/RESULTS.md, twenty-first session).
 
 It computes the S-step's packed form (``gmr_jax.sstep``, ``impl="packed"``) with the same
 minibatches, noise and Adam steps; the sums run in another order, so the two agree to round-off
