@@ -12,13 +12,16 @@ pass written out and Adam (or plain SGD) on every weight, all steps in one kerne
 thread block::
 
     python -m benchmarks.kernel_mlp --nets 1,3 --weights global,carry --update adam,sgd --out f.json
+    python -m benchmarks.kernel_mlp --nets "" --chain 1,8,32 --mosaic-chain 1,8,32 --out chain.json
 
 ``--weights global`` keeps weights and Adam's moments in global memory (read and written every
 step, as ``gmr_kernel`` does); ``carry`` keeps them in the loop's carry (registers, or local
 memory where they spill). Every configuration's final weights are compared with the same steps
 run as an XLA program (``reference``, also timed: its kernels per step set its floor,
-``benchmarks.kernel_floor``). Off a GPU the kernel runs in Pallas's interpreter (slow; a check of
-the arithmetic only).
+``benchmarks.kernel_floor``). ``--chain`` times a kernel of dependent products alone (Triton), and
+``--mosaic-chain`` the same in Pallas's Mosaic GPU backend, whose products keep their operands in
+registers. Off a GPU the Triton kernels run in Pallas's interpreter (slow; a check of the
+arithmetic only) and the Mosaic ones are skipped.
 """
 
 from __future__ import annotations
@@ -214,6 +217,37 @@ def chain_call(chain: int, steps: int, num_warps: int, dot: str, interpret: bool
         compiler_params=plt.CompilerParams(num_warps=num_warps, num_stages=1), name="chain")(h, w))
 
 
+@functools.lru_cache(maxsize=None)
+def mosaic_chain_call(chain: int, steps: int, dtype):
+    """``chain_call`` in Pallas's Mosaic GPU backend (Lane semantics): each product an MMA with
+    its operands in registers (``plgpu.mma``), the result returned to shared memory to be loaded
+    as the next left operand (an accumulator cannot be cast to an operand layout). (h [64, 64],
+    Wᵀ [64, 64]) -> h; h padded to 64 rows (the layouts' tile); bfloat16 operands (float32 ones
+    are not supported by ``plgpu.mma``), float32 accumulation. GPU only."""
+    from jax.experimental.pallas import mosaic_gpu as plgpu
+
+    rows, width = 64, 64
+
+    def body(h_ref, wt_ref, o_ref, smem):
+        rhs = plgpu.load(wt_ref.T, layout=plgpu.Layout.MMA_RHS(dtype), optimized=False)
+        smem[...] = h_ref[...]
+
+        def it(_, carry):
+            for _ in range(chain):
+                lhs = plgpu.load(smem, layout=plgpu.Layout.MMA_LHS(dtype), optimized=False)
+                acc = plgpu.layout_cast(jnp.zeros((rows, width), jnp.float32), plgpu.Layout.MMA_ACC(dtype))
+                pre = plgpu.mma(acc, lhs, rhs)
+                smem[...] = jnp.where(pre >= 0, pre, SLOPE * pre).astype(dtype)
+            return carry
+
+        lax.fori_loop(0, steps, it, 0)
+        o_ref[...] = smem[...]
+
+    params = plgpu.CompilerParams(lowering_semantics=plgpu.LoweringSemantics.Lane)
+    return jax.jit(plgpu.kernel(body, out_type=jax.ShapeDtypeStruct((rows, width), dtype),
+                                scratch_types=[plgpu.SMEM((rows, width), dtype)], compiler_params=params))
+
+
 def problem(nets: int, steps: int, update: str, dtype, rows: int = 400, seed: int = 0):
     """Synthetic data and initial state: (idx, c1, c2, X, Y, params, moments)."""
     rng = np.random.default_rng(seed)
@@ -326,6 +360,26 @@ def time_chains(args, dtype, interpret: bool) -> tuple[list[dict], dict]:
     return chains, fits
 
 
+def time_mosaic_chains(args) -> tuple[list[dict], dict | None]:
+    """``mosaic_chain_call`` for every chain length (bfloat16) and the least-squares µs per product."""
+    rng = np.random.default_rng(0)
+    h = jnp.asarray(0.1 * rng.normal(size=(64, 64)), jnp.bfloat16)
+    wt = jnp.asarray(np.linalg.qr(rng.normal(size=(64, 64)))[0].T, jnp.bfloat16)
+    rows = []
+    for chain in [int(c) for c in _split(args.mosaic_chain)]:
+        out, _, s = _timed(mosaic_chain_call(chain, args.steps, jnp.dtype(jnp.bfloat16)), (h, wt), args.repeats)
+        rows.append({"chain": chain, "dtype": "bfloat16", "us_per_iteration": 1e6 * s / args.steps,
+                     "finite": bool(np.all(np.isfinite(np.asarray(out, np.float32))))})
+        print(f"Mosaic GPU chain {chain:3d} bfloat16: {rows[-1]['us_per_iteration']:8.2f} µs per loop iteration",
+              flush=True)
+    fit = None
+    if len(rows) >= 2:
+        slope, intercept = np.polyfit([r["chain"] for r in rows], [r["us_per_iteration"] for r in rows], 1)
+        fit = {"us_per_product": float(slope), "us_per_iteration_besides": float(intercept)}
+        print(f"in-kernel floor, Mosaic GPU bfloat16: {slope:.3f} µs per dependent product", flush=True)
+    return rows, fit
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.kernel_mlp", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -336,6 +390,8 @@ def main(argv=None) -> int:
     p.add_argument("--dot", default="tf32x3", help="comma-separated: " + ", ".join(PRECISIONS))
     p.add_argument("--chain", default="", help="comma-separated chain lengths: also time a kernel of "
                    "that many dependent products per loop iteration (the in-kernel cost of one product)")
+    p.add_argument("--mosaic-chain", default="", help="comma-separated chain lengths: the chain kernel in "
+                   "Pallas's Mosaic GPU backend as well (bfloat16 products with register operands; GPU only)")
     p.add_argument("--steps", type=int, default=2000, help="Adam steps per launch")
     p.add_argument("--repeats", type=int, default=3, help="timed calls (median)")
     p.add_argument("--out", help="write the results as JSON to this file")
@@ -354,10 +410,15 @@ def main(argv=None) -> int:
     print(f"Device: {env['device']}, jax {env['jax']}" + (" (Pallas interpreter)" if interpret else ""), flush=True)
     rows = time_kernels(args, dtype, interpret)
     chains, fits = time_chains(args, dtype, interpret)
+    mosaic, mosaic_fit = [], None
+    if args.mosaic_chain and interpret:
+        print("--mosaic-chain: skipped, Mosaic GPU kernels run on a GPU only", flush=True)
+    elif args.mosaic_chain:
+        mosaic, mosaic_fit = time_mosaic_chains(args)
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"env": env, "args": vars(args), "rows": rows, "chains": chains, "chain_fits": fits}, f,
-                      indent=1)
+            json.dump({"env": env, "args": vars(args), "rows": rows, "chains": chains, "chain_fits": fits,
+                       "mosaic_chains": mosaic, "mosaic_chain_fit": mosaic_fit}, f, indent=1)
     return 0
 
 
