@@ -78,3 +78,31 @@ def test_chain_kernel_is_the_chain_of_products():
         expect = np.where(pre >= 0, pre, kernel_mlp.SLOPE * pre)
     # six products of 64 terms in float32 against float64, with an orthogonal W (no growth)
     assert np.max(np.abs(out - expect)) <= chain * steps * 64 * EPS32 * np.max(np.abs(expect))
+
+
+def test_the_command_off_a_gpu_checks_and_skips_the_mosaic_chain(tmp_path, capsys, monkeypatch):
+    """Off a GPU: the Triton kernels run in the interpreter, the Mosaic ones are skipped in one line,
+    and the JSON records every row with its comparison against the XLA steps."""
+    import json
+    import os
+
+    import jax
+
+    # the command sets float32 and XLA_FLAGS for the process: both are restored for the next tests
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+    x64 = jax.config.jax_enable_x64
+    out = tmp_path / "k.json"
+    try:
+        code = kernel_mlp.main(["--nets", "1", "--weights", "carry", "--update", "sgd", "--num-warps", "4",
+                                "--chain", "1,2", "--mosaic-chain", "1", "--steps", "3", "--repeats", "1",
+                                "--out", str(out)])
+    finally:
+        jax.config.update("jax_enable_x64", x64)
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "--mosaic-chain: skipped" in printed
+    rec = json.loads(out.read_text())
+    kernel = [r for r in rec["rows"] if r["form"] == "kernel"]
+    assert len(kernel) == 1 and kernel[0]["max_rel_diff_vs_reference"] <= 3 * 5 * 64 * EPS32
+    assert kernel[0]["first_step_loss_differs"] is None
+    assert [c["chain"] for c in rec["chains"]] == [1, 2] and rec["mosaic_chains"] == []
