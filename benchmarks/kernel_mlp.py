@@ -31,7 +31,6 @@ import functools
 import json
 import os
 import platform
-import statistics
 import time
 
 import jax
@@ -41,6 +40,7 @@ from jax import lax
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
+from benchmarks.rollout import timed
 from experiments import cli
 from gmr_jax.adam import adam_corrections, adam_update
 from gmr_jax.config import SStepConfig
@@ -275,19 +275,6 @@ def first_divergence(loss, ref, rtol: float = 1e-5) -> int | None:
     return int(bad[0]) if len(bad) else None
 
 
-def _timed(fn, args, repeats):
-    """(output, seconds of the first call (compilation included), median seconds of ``repeats`` more)."""
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return out, first, statistics.median(times)
-
-
 def _split(text: str) -> list[str]:
     return [v for v in text.split(",") if v]
 
@@ -298,7 +285,7 @@ def time_kernels(args, dtype, interpret: bool) -> list[dict]:
     for nets in [int(n) for n in _split(args.nets)]:
         for update in _split(args.update):
             prob = problem(nets, args.steps, update, dtype)
-            ref_out, _, ref_s = _timed(reference_call(nets, args.steps, update, dtype), prob, args.repeats)
+            _, ref_s, _, ref_out = timed(reference_call(nets, args.steps, update, dtype), prob, args.repeats)
             n_params = 6 * nets
             rows.append({"form": "reference", "nets": nets, "update": update,
                          "us_per_step": 1e6 * ref_s / args.steps})
@@ -311,7 +298,7 @@ def time_kernels(args, dtype, interpret: bool) -> list[dict]:
                                "num_warps": warps, "dot": dot}
                         fn = kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret)
                         try:
-                            out, first_s, s = _timed(fn, prob, args.repeats)
+                            _, s, first_s, out = timed(fn, prob, args.repeats)
                         except Exception as e:  # noqa: BLE001 (a configuration Triton rejects is a result)
                             print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot}: failed: "
                                   f"{type(e).__name__}: {str(e).splitlines()[0][:200]}", flush=True)
@@ -342,7 +329,7 @@ def time_chains(args, dtype, interpret: bool) -> tuple[list[dict], dict]:
     for chain in [int(c) for c in _split(args.chain)]:
         for warps in [int(n) for n in _split(args.num_warps)]:
             for dot in _split(args.dot):
-                _, _, s = _timed(chain_call(chain, args.steps, warps, dot, interpret), (h, w), args.repeats)
+                _, s, _, _ = timed(chain_call(chain, args.steps, warps, dot, interpret), (h, w), args.repeats)
                 chains.append({"chain": chain, "num_warps": warps, "dot": dot,
                                "us_per_iteration": 1e6 * s / args.steps})
                 print(f"chain {chain:3d} {warps:2d} warps {dot:6s}: "
@@ -367,7 +354,8 @@ def time_mosaic_chains(args) -> tuple[list[dict], dict | None]:
     wt = jnp.asarray(np.linalg.qr(rng.normal(size=(64, 64)))[0].T, jnp.bfloat16)
     rows = []
     for chain in [int(c) for c in _split(args.mosaic_chain)]:
-        out, _, s = _timed(mosaic_chain_call(chain, args.steps, jnp.dtype(jnp.bfloat16)), (h, wt), args.repeats)
+        _, s, _, out = timed(mosaic_chain_call(chain, args.steps, jnp.dtype(jnp.bfloat16)), (h, wt),
+                             args.repeats)
         rows.append({"chain": chain, "dtype": "bfloat16", "us_per_iteration": 1e6 * s / args.steps,
                      "finite": bool(np.all(np.isfinite(np.asarray(out, np.float32))))})
         print(f"Mosaic GPU chain {chain:3d} bfloat16: {rows[-1]['us_per_iteration']:8.2f} µs per loop iteration",

@@ -744,7 +744,6 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
         child.join(timeout=60)
 
 
-
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
             scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None,
             stability: bool = True, platforms: dict | None = None, processes=()) -> dict:
