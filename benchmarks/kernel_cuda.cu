@@ -1,0 +1,458 @@
+// The floor of a hand-written CUDA S-step: dependent products and a grid-wide Adam update.
+//
+// Built and run by benchmarks/kernel_cuda.py (nvcc for the GPU at hand); prints one JSON object
+// per line. Three kinds of kernels, each checked against a double-precision host reference
+// before it is timed:
+//
+//   chain_fma   one thread block of 256 threads; the loop body is `chain` dependent products
+//               h <- leaky_relu(h W) of h [32, 64] by W [64, 64] on the CUDA cores (float32
+//               fused multiply-adds, h and W in shared memory, a block barrier per product).
+//   chain_mma   the same chain on the tensor cores with warp-level `mma.sync` (m16n8k8, TF32
+//               operands, float32 accumulators), one warp per 16 rows, 1 or 3 passes (tf32 or
+//               tf32x3: a_lo·b_hi + a_hi·b_lo + a_hi·b_hi). W's rows are stored in the order in
+//               which an accumulator fragment is laid out, so that a product's output fragment is
+//               the next product's input fragment as it stands: with `nsplit` = 1 a warp holds its
+//               rows' activations in registers from product to product, with no shared memory and
+//               no barrier. With `nsplit` = 2 or 4 the 64 output columns are split over that many
+//               warps, which exchange their fragments through shared memory with a named barrier.
+//   grid_adam   Adam on n parameters per step, split over a cooperative grid of one block per
+//               multiprocessor: block 0 reads the weights and writes a gradient (as the block
+//               that forms the step's products would), grid sync, every block updates its slice
+//               of (w, m, v) in global memory, grid sync. Mode "sync" keeps the two syncs alone,
+//               mode "block" does the whole update in one block (no grid, no sync).
+
+#include <cooperative_groups.h>
+#include <cuda_runtime.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <functional>
+#include <random>
+#include <string>
+#include <vector>
+
+namespace cg = cooperative_groups;
+
+#define CHECK(call)                                                                       \
+  do {                                                                                    \
+    cudaError_t err_ = (call);                                                            \
+    if (err_ != cudaSuccess) {                                                            \
+      fprintf(stderr, "CUDA error: %s (%s:%d)\n", cudaGetErrorString(err_), __FILE__, __LINE__); \
+      exit(1);                                                                            \
+    }                                                                                     \
+  } while (0)
+
+constexpr int ROWS = 32;   // the minibatch's 20 rows padded to two 16-row tiles
+constexpr int WIDTH = 64;  // the networks' hidden width
+constexpr float SLOPE = 0.2f;
+
+__device__ __forceinline__ float leaky(float v) { return v > 0.f ? v : SLOPE * v; }
+
+// ----------------------------------------------------------------------------------------------
+// CUDA cores: thread (ty, tx) = (tid / 16, tid % 16) computes rows 2ty, 2ty+1 and columns
+// 4tx .. 4tx+3.
+__global__ void __launch_bounds__(256) chain_fma(const float* __restrict__ h0, const float* __restrict__ w,
+                                                 float* __restrict__ out, int steps, int chain) {
+  __shared__ __align__(16) float W[WIDTH][WIDTH];
+  __shared__ __align__(16) float H[2][ROWS][WIDTH + 4];
+  const int tid = threadIdx.x;
+  for (int i = tid; i < WIDTH * WIDTH; i += blockDim.x) W[i / WIDTH][i % WIDTH] = w[i];
+  for (int i = tid; i < ROWS * WIDTH; i += blockDim.x) H[0][i / WIDTH][i % WIDTH] = h0[i];
+  __syncthreads();
+  const int ty = tid / 16, tx = tid % 16;
+  int cur = 0;
+  for (int s = 0; s < steps; ++s) {
+    for (int c = 0; c < chain; ++c) {
+      float acc[2][4] = {};
+#pragma unroll 16
+      for (int k = 0; k < WIDTH; ++k) {
+        const float a0 = H[cur][2 * ty][k], a1 = H[cur][2 * ty + 1][k];
+        const float4 b = *reinterpret_cast<const float4*>(&W[k][4 * tx]);
+        acc[0][0] = fmaf(a0, b.x, acc[0][0]);
+        acc[0][1] = fmaf(a0, b.y, acc[0][1]);
+        acc[0][2] = fmaf(a0, b.z, acc[0][2]);
+        acc[0][3] = fmaf(a0, b.w, acc[0][3]);
+        acc[1][0] = fmaf(a1, b.x, acc[1][0]);
+        acc[1][1] = fmaf(a1, b.y, acc[1][1]);
+        acc[1][2] = fmaf(a1, b.z, acc[1][2]);
+        acc[1][3] = fmaf(a1, b.w, acc[1][3]);
+      }
+#pragma unroll
+      for (int r = 0; r < 2; ++r) {
+        float4 o = make_float4(leaky(acc[r][0]), leaky(acc[r][1]), leaky(acc[r][2]), leaky(acc[r][3]));
+        *reinterpret_cast<float4*>(&H[cur ^ 1][2 * ty + r][4 * tx]) = o;
+      }
+      __syncthreads();
+      cur ^= 1;
+    }
+  }
+  for (int i = tid; i < ROWS * WIDTH; i += blockDim.x) out[i] = H[cur][i / WIDTH][i % WIDTH];
+}
+
+// ----------------------------------------------------------------------------------------------
+// Tensor cores. Fragments of mma.m16n8k8 (TF32), lane = 4g + t:
+//   A (16x8): a0 (g, t), a1 (g+8, t), a2 (g, t+4), a3 (g+8, t+4)
+//   B (8x8):  b0 (k=t, n=g), b1 (k=t+4, n=g)
+//   C (16x8): c0 (g, 2t), c1 (g, 2t+1), c2 (g+8, 2t), c3 (g+8, 2t+1)
+// Take the k-step kk's local column t to be activation column 8kk+2t and local column t+4 to be
+// 8kk+2t+1 (a permutation of the summed index, applied to W's rows alike): then the A fragment of
+// k-step kk is (c0, c2, c1, c3) of the previous product's n-tile kk, in the same lane.
+
+__device__ __forceinline__ uint32_t to_tf32(float x) {
+  uint32_t r;
+  asm("cvt.rna.tf32.f32 %0, %1;" : "=r"(r) : "f"(x));
+  return r;
+}
+
+__device__ __forceinline__ void mma_tf32(float (&d)[4], const uint32_t (&a)[4], uint32_t b0, uint32_t b1) {
+  asm("mma.sync.aligned.m16n8k8.row.col.f32.tf32.tf32.f32 {%0,%1,%2,%3}, {%4,%5,%6,%7}, {%8,%9}, "
+      "{%0,%1,%2,%3};"
+      : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3])
+      : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
+}
+
+template <int PASSES, int NSPLIT>
+__global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict__ h0, const float* __restrict__ w,
+                                                         float* __restrict__ out, int steps, int chain) {
+  constexpr int NT = 8 / NSPLIT;  // n-tiles per warp
+  // B fragments (hi, lo) per (kk, nn, lane): (b0, b1)
+  __shared__ __align__(16) uint2 Bhi[8][8][32];
+  __shared__ __align__(16) uint2 Blo[PASSES == 3 ? 8 : 1][8][32];
+  // exchanged A fragments, double-buffered: [buffer][m-tile][kk][lane]
+  __shared__ __align__(16) float4 X[NSPLIT > 1 ? 2 : 1][2][8][32];
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  const int g = lane / 4, t = lane % 4;
+  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
+  for (int i = threadIdx.x; i < 8 * 8 * 32; i += blockDim.x) {
+    const int kk = i / 256, nn = (i / 32) % 8, l = i % 32, lg = l / 4, lt = l % 4;
+    const float v0 = w[(8 * kk + 2 * lt) * WIDTH + 8 * nn + lg];
+    const float v1 = w[(8 * kk + 2 * lt + 1) * WIDTH + 8 * nn + lg];
+    const uint32_t h0b = to_tf32(v0), h1b = to_tf32(v1);
+    Bhi[kk][nn][l] = make_uint2(h0b, h1b);
+    if (PASSES == 3)
+      Blo[kk][nn][l] = make_uint2(to_tf32(v0 - __uint_as_float(h0b)), to_tf32(v1 - __uint_as_float(h1b)));
+  }
+  // this warp's rows' A fragments for all 8 k-steps
+  float4 frag[8];
+  const int r0 = 16 * mtile + g;
+#pragma unroll
+  for (int kk = 0; kk < 8; ++kk)
+    frag[kk] = make_float4(h0[r0 * WIDTH + 8 * kk + 2 * t], h0[(r0 + 8) * WIDTH + 8 * kk + 2 * t],
+                           h0[r0 * WIDTH + 8 * kk + 2 * t + 1], h0[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1]);
+  __syncthreads();
+  float acc[NT][4];
+  int buf = 0;
+  for (int s = 0; s < steps; ++s) {
+    for (int c = 0; c < chain; ++c) {
+#pragma unroll
+      for (int j = 0; j < NT; ++j) acc[j][0] = acc[j][1] = acc[j][2] = acc[j][3] = 0.f;
+#pragma unroll
+      for (int kk = 0; kk < 8; ++kk) {
+        const float4 f = frag[kk];
+        const uint32_t ahi[4] = {to_tf32(f.x), to_tf32(f.y), to_tf32(f.z), to_tf32(f.w)};
+        uint32_t alo[4];
+        if (PASSES == 3) {
+          alo[0] = to_tf32(f.x - __uint_as_float(ahi[0]));
+          alo[1] = to_tf32(f.y - __uint_as_float(ahi[1]));
+          alo[2] = to_tf32(f.z - __uint_as_float(ahi[2]));
+          alo[3] = to_tf32(f.w - __uint_as_float(ahi[3]));
+        }
+#pragma unroll
+        for (int j = 0; j < NT; ++j) {
+          const int nn = part * NT + j;
+          const uint2 bh = Bhi[kk][nn][lane];
+          if (PASSES == 3) {
+            const uint2 bl = Blo[kk][nn][lane];
+            mma_tf32(acc[j], alo, bh.x, bh.y);
+            mma_tf32(acc[j], ahi, bl.x, bl.y);
+          }
+          mma_tf32(acc[j], ahi, bh.x, bh.y);
+        }
+      }
+      if (NSPLIT == 1) {
+#pragma unroll
+        for (int j = 0; j < NT; ++j)
+          frag[j] = make_float4(leaky(acc[j][0]), leaky(acc[j][2]), leaky(acc[j][1]), leaky(acc[j][3]));
+      } else {
+#pragma unroll
+        for (int j = 0; j < NT; ++j)
+          X[buf][mtile][part * NT + j][lane] =
+              make_float4(leaky(acc[j][0]), leaky(acc[j][2]), leaky(acc[j][1]), leaky(acc[j][3]));
+        asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(32 * NSPLIT) : "memory");
+#pragma unroll
+        for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
+        buf ^= 1;
+      }
+    }
+  }
+  // the last product's output: frag[kk] = (c0, c2, c1, c3) of n-tile kk
+  if (part == 0) {
+#pragma unroll
+    for (int kk = 0; kk < 8; ++kk) {
+      out[r0 * WIDTH + 8 * kk + 2 * t] = frag[kk].x;
+      out[r0 * WIDTH + 8 * kk + 2 * t + 1] = frag[kk].z;
+      out[(r0 + 8) * WIDTH + 8 * kk + 2 * t] = frag[kk].y;
+      out[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1] = frag[kk].w;
+    }
+  }
+}
+
+// ----------------------------------------------------------------------------------------------
+// Adam on n parameters per step. The gradient stands for what the step's products would give:
+// g = 1e-3·w + 1e-4 (read from the weights, so that each step depends on the last).
+struct AdamArgs {
+  float* w;
+  float* m;
+  float* v;
+  float* g;
+  int n;
+  int steps;
+  float lr, b1, b2, eps;
+};
+
+__device__ __forceinline__ float correction(float beta, int step) { return 1.f / (1.f - powf(beta, float(step + 1))); }
+
+__device__ __forceinline__ void adam_entry(const AdamArgs& a, int i, float c1, float c2) {
+  const float gi = a.g[i];
+  const float mi = a.b1 * a.m[i] + (1.f - a.b1) * gi;
+  const float vi = a.b2 * a.v[i] + (1.f - a.b2) * gi * gi;
+  a.m[i] = mi;
+  a.v[i] = vi;
+  a.w[i] -= a.lr * (mi * c1) / (sqrtf(vi * c2) + a.eps);
+}
+
+// mode 0: the grid's two syncs alone; mode 1: gradient in block 0, sync, Adam over the grid, sync
+__global__ void grid_adam(AdamArgs a, int mode) {
+  cg::grid_group grid = cg::this_grid();
+  const int per_block = (a.n + gridDim.x - 1) / gridDim.x;
+  const int lo = blockIdx.x * per_block, hi = min(a.n, lo + per_block);
+  for (int s = 0; s < a.steps; ++s) {
+    if (mode == 1 && blockIdx.x == 0)
+      for (int i = threadIdx.x; i < a.n; i += blockDim.x) a.g[i] = 1e-3f * a.w[i] + 1e-4f;
+    grid.sync();
+    if (mode == 1) {
+      const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
+      for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) adam_entry(a, i, c1, c2);
+    }
+    grid.sync();
+  }
+}
+
+// the whole update in one block
+__global__ void block_adam(AdamArgs a) {
+  for (int s = 0; s < a.steps; ++s) {
+    const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
+    for (int i = threadIdx.x; i < a.n; i += blockDim.x) {
+      a.g[i] = 1e-3f * a.w[i] + 1e-4f;
+      adam_entry(a, i, c1, c2);
+    }
+    __syncthreads();
+  }
+}
+
+// ----------------------------------------------------------------------------------------------
+// host
+
+static std::vector<double> reference_chain(const std::vector<float>& h0, const std::vector<float>& w, int chain) {
+  std::vector<double> h(h0.begin(), h0.end()), next(h.size());
+  for (int c = 0; c < chain; ++c) {
+    for (int r = 0; r < ROWS; ++r)
+      for (int o = 0; o < WIDTH; ++o) {
+        double s = 0.0;
+        for (int k = 0; k < WIDTH; ++k) s += h[r * WIDTH + k] * double(w[k * WIDTH + o]);
+        next[r * WIDTH + o] = s > 0 ? s : SLOPE * s;
+      }
+    h.swap(next);
+  }
+  return h;
+}
+
+// max |a - b| / max |b|
+static double relative_error(const std::vector<float>& a, const std::vector<double>& b) {
+  double err = 0.0, scale = 0.0;
+  for (size_t i = 0; i < b.size(); ++i) {
+    err = std::max(err, std::fabs(double(a[i]) - b[i]));
+    scale = std::max(scale, std::fabs(b[i]));
+  }
+  return err / scale;
+}
+
+typedef void (*ChainKernel)(const float*, const float*, float*, int, int);
+
+struct ChainVariant {
+  const char* kernel;
+  const char* precision;
+  int nsplit;
+  int threads;
+  ChainKernel fn;
+};
+
+static float time_launches(const std::function<void()>& launch, int repeats) {
+  cudaEvent_t start, stop;
+  CHECK(cudaEventCreate(&start));
+  CHECK(cudaEventCreate(&stop));
+  launch();  // warm-up
+  CHECK(cudaDeviceSynchronize());
+  float best = 1e30f;
+  for (int r = 0; r < repeats; ++r) {
+    CHECK(cudaEventRecord(start));
+    launch();
+    CHECK(cudaEventRecord(stop));
+    CHECK(cudaEventSynchronize(stop));
+    float ms;
+    CHECK(cudaEventElapsedTime(&ms, start, stop));
+    best = std::min(best, ms);
+  }
+  CHECK(cudaEventDestroy(start));
+  CHECK(cudaEventDestroy(stop));
+  return best;
+}
+
+static std::vector<int> parse_list(const char* s) {
+  std::vector<int> out;
+  std::string str(s);
+  size_t pos = 0;
+  while (pos < str.size()) {
+    size_t end = str.find(',', pos);
+    if (end == std::string::npos) end = str.size();
+    if (end > pos) out.push_back(std::atoi(str.substr(pos, end - pos).c_str()));
+    pos = end + 1;
+  }
+  return out;
+}
+
+int main(int argc, char** argv) {
+  // arguments: chains steps repeats adam_n adam_steps
+  const std::vector<int> chains = parse_list(argc > 1 ? argv[1] : "1,8,32");
+  const int steps = argc > 2 ? std::atoi(argv[2]) : 2000;
+  const int repeats = argc > 3 ? std::atoi(argv[3]) : 5;
+  const int adam_n = argc > 4 ? std::atoi(argv[4]) : 41600;
+  const int adam_steps = argc > 5 ? std::atoi(argv[5]) : 2000;
+
+  cudaDeviceProp prop;
+  CHECK(cudaGetDeviceProperties(&prop, 0));
+  printf("{\"device\": \"%s\", \"multiprocessors\": %d, \"sm\": \"%d.%d\"}\n", prop.name, prop.multiProcessorCount,
+         prop.major, prop.minor);
+
+  std::mt19937 rng(0);
+  std::normal_distribution<float> normal(0.f, 1.f);
+  std::vector<float> h0(ROWS * WIDTH), w(WIDTH * WIDTH);
+  for (auto& x : h0) x = normal(rng);
+  // He's scale for leaky ReLU keeps the activations' size along the chain
+  const float scale = std::sqrt(2.f / (1.f + SLOPE * SLOPE) / WIDTH);
+  for (auto& x : w) x = scale * normal(rng);
+  float *d_h0, *d_w, *d_out;
+  CHECK(cudaMalloc(&d_h0, h0.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_w, w.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_out, h0.size() * sizeof(float)));
+  CHECK(cudaMemcpy(d_h0, h0.data(), h0.size() * sizeof(float), cudaMemcpyHostToDevice));
+  CHECK(cudaMemcpy(d_w, w.data(), w.size() * sizeof(float), cudaMemcpyHostToDevice));
+
+  const ChainVariant variants[] = {
+      {"chain_fma", "ieee", 0, 256, chain_fma},
+      {"chain_mma", "tf32", 1, 64, chain_mma<1, 1>},
+      {"chain_mma", "tf32x3", 1, 64, chain_mma<3, 1>},
+      {"chain_mma", "tf32x3", 2, 128, chain_mma<3, 2>},
+      {"chain_mma", "tf32x3", 4, 256, chain_mma<3, 4>},
+  };
+  const int check_chain = 4;
+  const std::vector<double> ref = reference_chain(h0, w, check_chain);
+  std::vector<float> got(h0.size());
+  for (const ChainVariant& v : variants) {
+    v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, 1, check_chain);
+    CHECK(cudaGetLastError());
+    CHECK(cudaMemcpy(got.data(), d_out, got.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"products\": %d, \"max_rel_err\": %.3e}\n",
+           v.kernel, v.precision, v.nsplit, check_chain, relative_error(got, ref));
+    for (int chain : chains) {
+      const float ms = time_launches([&] { v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, steps, chain); }, repeats);
+      CHECK(cudaGetLastError());
+      printf("{\"kernel\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"threads\": %d, \"chain\": %d, "
+             "\"steps\": %d, \"us_per_iteration\": %.4f}\n",
+             v.kernel, v.precision, v.nsplit, v.threads, chain, steps, 1e3 * ms / steps);
+    }
+  }
+
+  // Adam: host reference of a few steps, then the timings
+  std::vector<float> w0(adam_n);
+  for (auto& x : w0) x = 0.1f * normal(rng);
+  AdamArgs a{nullptr, nullptr, nullptr, nullptr, adam_n, 0, 1e-3f, 0.9f, 0.999f, 1e-8f};
+  CHECK(cudaMalloc(&a.w, adam_n * sizeof(float)));
+  CHECK(cudaMalloc(&a.m, adam_n * sizeof(float)));
+  CHECK(cudaMalloc(&a.v, adam_n * sizeof(float)));
+  CHECK(cudaMalloc(&a.g, adam_n * sizeof(float)));
+  auto reset = [&] {
+    CHECK(cudaMemcpy(a.w, w0.data(), adam_n * sizeof(float), cudaMemcpyHostToDevice));
+    CHECK(cudaMemset(a.m, 0, adam_n * sizeof(float)));
+    CHECK(cudaMemset(a.v, 0, adam_n * sizeof(float)));
+  };
+  const int check_steps = 5;
+  std::vector<double> wr(w0.begin(), w0.end()), mr(adam_n, 0.0), vr(adam_n, 0.0);
+  // the kernels' float32 constants, in double
+  const double b1 = a.b1, b2 = a.b2, lr = a.lr, eps = a.eps;
+  for (int s = 0; s < check_steps; ++s)
+    for (int i = 0; i < adam_n; ++i) {
+      const double gi = double(1e-3f) * wr[i] + double(1e-4f);
+      mr[i] = b1 * mr[i] + (1 - b1) * gi;
+      vr[i] = b2 * vr[i] + (1 - b2) * gi * gi;
+      wr[i] -= lr * (mr[i] / (1 - std::pow(b1, s + 1))) / (std::sqrt(vr[i] / (1 - std::pow(b2, s + 1))) + eps);
+    }
+  // relative to the size of the update, the quantity the kernel computes
+  double max_abs_w = 0.0, max_update = 0.0;
+  for (int i = 0; i < adam_n; ++i) {
+    max_abs_w = std::max(max_abs_w, std::fabs(wr[i]));
+    max_update = std::max(max_update, std::fabs(wr[i] - double(w0[i])));
+  }
+  auto update_error = [&](const std::vector<float>& got_w) {
+    double err = 0.0;
+    for (int i = 0; i < adam_n; ++i) err = std::max(err, std::fabs(double(got_w[i]) - wr[i]));
+    return err / max_update;
+  };
+  int blocks_per_sm = 0;
+  const int threads = 256;
+  CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks_per_sm, grid_adam, threads, 0));
+  const int grid = prop.multiProcessorCount;
+  if (blocks_per_sm < 1) {
+    fprintf(stderr, "grid_adam cannot run one block per multiprocessor\n");
+    return 1;
+  }
+  auto launch_grid = [&](int mode, int n_steps) {
+    a.steps = n_steps;
+    void* args[] = {&a, &mode};
+    CHECK(cudaLaunchCooperativeKernel((void*)grid_adam, grid, threads, args, 0, 0));
+  };
+  std::vector<float> got_w(adam_n);
+  reset();
+  launch_grid(1, check_steps);
+  CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
+  printf("{\"check\": \"grid_adam\", \"steps\": %d, \"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
+         check_steps, update_error(got_w), max_abs_w, max_update);
+  reset();
+  a.steps = check_steps;
+  block_adam<<<1, 1024>>>(a);
+  CHECK(cudaGetLastError());
+  CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
+  printf("{\"check\": \"block_adam\", \"steps\": %d, \"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
+         check_steps, update_error(got_w), max_abs_w, max_update);
+
+  for (int mode = 0; mode < 2; ++mode) {
+    reset();
+    const float ms = time_launches([&] { launch_grid(mode, adam_steps); }, repeats);
+    printf("{\"kernel\": \"grid_adam\", \"mode\": \"%s\", \"blocks\": %d, \"threads\": %d, \"n\": %d, \"steps\": %d, "
+           "\"us_per_step\": %.4f}\n",
+           mode == 0 ? "sync" : "update", grid, threads, adam_n, adam_steps, 1e3 * ms / adam_steps);
+  }
+  for (int bt : {256, 1024}) {
+    reset();
+    const float ms = time_launches([&] { a.steps = adam_steps; block_adam<<<1, bt>>>(a); }, repeats);
+    CHECK(cudaGetLastError());
+    printf("{\"kernel\": \"block_adam\", \"mode\": \"block\", \"blocks\": 1, \"threads\": %d, \"n\": %d, \"steps\": %d, "
+           "\"us_per_step\": %.4f}\n",
+           bt, adam_n, adam_steps, 1e3 * ms / adam_steps);
+  }
+  return 0;
+}

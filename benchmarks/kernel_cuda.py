@@ -1,0 +1,207 @@
+"""The floor of a hand-written CUDA S-step: warp-level products and a grid-wide Adam update.
+
+Goal 1 of issue 14 asks for 20 µs per GMR Adam step at one seed. XLA's programs stop at about
+11 dependent kernels (≈ 28 µs, ninth session), Pallas's kernels at 0.9 µs (Triton) and 0.64 µs
+(Mosaic GPU, bfloat16 only) per dependent product inside a kernel (``benchmarks.kernel_mlp``,
+twenty-first session); a step forms about 32 products. What the issue's last way — one kernel
+with the weights on chip — would cost written in CUDA itself is measured here, from the parts
+that set its floor (``benchmarks/kernel_cuda.cu``, built with nvcc for the GPU at hand):
+
+- ``chain_fma`` / ``chain_mma``: a loop whose body is ``--chain`` dependent products
+  h ← leaky_relu(h W), h [32, 64] (the minibatch's 20 rows padded to two 16-row tiles), W [64, 64],
+  in one thread block: on the CUDA cores (float32), and on the tensor cores with warp-level
+  ``mma.sync`` (TF32 operands, one pass or three, ``tf32x3``, the float32-accurate split), each
+  warp keeping its rows' activations in registers from one product to the next (W's rows stored
+  in the order of an accumulator fragment, so no shuffle and no shared memory sits between two
+  products), or with the columns split over 2 or 4 warps that exchange fragments through shared
+  memory. The least-squares slope over the chain lengths is one dependent product.
+- ``grid_adam``: Adam on ``--adam-n`` entries (GMR's packed θ: 41 600) per step, spread over a
+  cooperative grid of one block per multiprocessor between two grid-wide syncs (block 0 reads the
+  weights and writes a gradient first, as the block that forms the products would); the syncs
+  alone; and the whole update in one block.
+
+Every kernel is checked against a double-precision host computation before it is timed (bounds
+below); a failed check stops the benchmark. The estimate it prints, ``--products`` dependent
+products plus the grid's Adam step, leaves out the head, the loss, the gather and the
+statistics: it is a floor of the approach, not a kernel::
+
+    python -m benchmarks.kernel_cuda --out kernel_cuda.json
+
+Needs nvcc and an NVIDIA GPU (``--arch native`` builds for the GPU present); results:
+benchmarks/RESULTS.md, twenty-second session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import re
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SOURCE = Path(__file__).with_name("kernel_cuda.cu")
+WIDTH = 64  # the summed length of each product (kernel_cuda.cu's WIDTH)
+UNIT_ROUNDOFF = {"ieee": 2.0 ** -24, "tf32x3": 2.0 ** -21, "tf32": 2.0 ** -11}
+"""Relative rounding of one product term: float32; the three-pass TF32 split (it drops the
+lo·lo term, and each lo part is itself rounded to TF32's 10-bit mantissa); one TF32 pass."""
+
+
+def chain_bound(precision: str, products: int) -> float:
+    """Bound on max|h − h_ref| / max|h_ref| after ``products`` dependent products of length WIDTH:
+    per product √WIDTH rounding errors of 2u (both operands rounded) on terms a factor 4 larger
+    than the output (random signs), growing linearly along the chain. A kernel that reads a wrong
+    fragment is off by O(1)."""
+    return products * math.sqrt(WIDTH) * 2.0 * UNIT_ROUNDOFF[precision] * 4.0
+
+
+def adam_bound(steps: int, max_abs_w: float, max_update: float, b2: float = 0.999) -> float:
+    """Bound on max|w − w_ref| / max|w − w0| after ``steps`` float32 Adam steps: each step rounds
+    w (at most an ulp of max|w|, 2·2⁻²⁴·max|w|), and the update carries its own float32
+    arithmetic (a few operations, 8·2⁻²⁴) and the bias correction's cancellation: 1 − β₂ᵗ from a
+    powf good to 2⁻²⁴ of β₂ᵗ is off by 2⁻²⁴/(1 − β₂) relative at t = 1, all relative to the
+    update."""
+    u = 2.0 ** -24
+    return steps * (2.0 * u * max_abs_w + (8.0 * u + u / (1.0 - b2)) * max_update) / max_update
+
+
+def line_fit(points: list[tuple[float, float]]) -> tuple[float, float]:
+    """Least-squares (slope, intercept) of (x, y) points (at least two distinct x)."""
+    x, y = np.asarray(points, dtype=float).T
+    if len(set(x.tolist())) < 2:
+        raise ValueError("line_fit needs at least two distinct chain lengths (--chain 1,8,32)")
+    slope, intercept = np.polyfit(x, y, 1)
+    return float(slope), float(intercept)
+
+
+def build(nvcc: str, arch: str, out_dir: str) -> tuple[Path, str]:
+    """Compile kernel_cuda.cu -> (executable, ptxas's report)."""
+    exe = Path(out_dir) / "kernel_cuda"
+    cmd = [nvcc, "-O3", "-std=c++17", f"-arch={arch}", "-Xptxas", "-v", "-o", str(exe), str(SOURCE)]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"kernel_cuda: nvcc failed ({' '.join(cmd)}):\n{res.stderr[-3000:]}")
+    return exe, res.stderr
+
+
+def spills(ptxas_report: str) -> int:
+    """Bytes of spill stores summed over every kernel in ptxas's -v report."""
+    return sum(int(n) for n in re.findall(r"(\d+) bytes spill stores", ptxas_report))
+
+
+def summarize(lines: list[dict], products: int) -> dict:
+    """Checks, fits and the floor estimate from the executable's JSON lines."""
+    device = next(r for r in lines if "device" in r)
+    checks, failed = [], []
+    for r in lines:
+        if r.get("check", "").startswith("chain"):
+            bound = chain_bound(r["precision"], r["products"])
+            err = r["max_rel_err"]
+        elif "check" in r:
+            bound = adam_bound(r["steps"], r["max_abs_w"], r["max_update"])
+            err = r["max_err_over_update"]
+        else:
+            continue
+        checks.append({**r, "bound": bound, "ok": bool(err <= bound)})
+        if not err <= bound:
+            failed.append(checks[-1])
+    chains = [r for r in lines if r.get("kernel", "").startswith("chain")]
+    fits = {}
+    for key in sorted({(r["kernel"], r["precision"], r["nsplit"], r["threads"]) for r in chains}):
+        pts = [(r["chain"], r["us_per_iteration"]) for r in chains
+               if (r["kernel"], r["precision"], r["nsplit"], r["threads"]) == key]
+        if len({c for c, _ in pts}) >= 2:
+            slope, intercept = line_fit(pts)
+            fits[f"{key[0]}_{key[1]}_split{key[2]}_{key[3]}threads"] = {
+                "us_per_product": slope, "us_per_iteration_besides": intercept}
+    adam = {f"{r['kernel']}_{r['mode']}_{r['threads']}threads": r["us_per_step"]
+            for r in lines if r.get("kernel", "").endswith("adam")}
+    estimate = None
+    accurate = {k: v for k, v in fits.items() if "_tf32x3_" in k or "_ieee_" in k}
+    grid_update = adam.get("grid_adam_update_256threads")
+    if accurate and grid_update is not None:
+        best = min(accurate, key=lambda k: accurate[k]["us_per_product"])
+        estimate = {"products": products, "product_kernel": best,
+                    "us_per_product": accurate[best]["us_per_product"],
+                    "adam_us": grid_update,
+                    "us_per_step": products * accurate[best]["us_per_product"] + grid_update}
+    return {"device": device, "checks": checks, "failed_checks": failed, "chain_fits": fits,
+            "adam_us_per_step": adam, "floor_estimate": estimate}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.kernel_cuda", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--chain", default="1,8,32", help="comma-separated chain lengths (dependent products "
+                   "per loop iteration)")
+    p.add_argument("--steps", type=int, default=2000, help="loop iterations per launch")
+    p.add_argument("--repeats", type=int, default=5, help="timed launches (the fastest counts)")
+    p.add_argument("--adam-n", type=int, default=41_600, help="Adam's entries (GMR's packed θ)")
+    p.add_argument("--adam-steps", type=int, default=2000, help="Adam steps per launch")
+    p.add_argument("--products", type=int, default=32, help="products per GMR Adam step in the estimate "
+                   "(11 forward, 11 weight gradients, 10 input gradients)")
+    p.add_argument("--nvcc", default="nvcc", help="the CUDA compiler")
+    p.add_argument("--arch", default="native", help="nvcc's -arch (native: the GPU present)")
+    p.add_argument("--out", help="write the results as JSON to this file")
+    args = p.parse_args(argv)
+    try:
+        chains = [int(c) for c in args.chain.split(",") if c.strip()]
+    except ValueError:
+        p.error(f"--chain {args.chain!r}: expected comma-separated integers such as 1,8,32")
+    if len(set(chains)) < 2 or min(chains) < 1:
+        p.error(f"--chain {args.chain!r}: give at least two distinct positive lengths, e.g. 1,8,32")
+    for name in ("steps", "repeats", "adam_n", "adam_steps", "products"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be at least 1")
+    nvcc = shutil.which(args.nvcc)
+    if nvcc is None:
+        raise SystemExit(f"kernel_cuda: the CUDA compiler {args.nvcc!r} was not found; install the CUDA "
+                         "toolkit or pass --nvcc PATH (this benchmark needs an NVIDIA GPU)")
+    version = subprocess.run([nvcc, "--version"], capture_output=True, text=True).stdout.strip().splitlines()[-1]
+    with tempfile.TemporaryDirectory() as tmp:
+        exe, report = build(nvcc, args.arch, tmp)
+        cmd = [str(exe), ",".join(map(str, chains)), str(args.steps), str(args.repeats), str(args.adam_n),
+               str(args.adam_steps)]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"kernel_cuda: the benchmark failed (exit {res.returncode}): "
+                         f"{(res.stderr.strip() or res.stdout.strip()).splitlines()[-1:]}")
+    lines = [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
+    summary = summarize(lines, args.products)
+    env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": summary["device"], "nvcc": version,
+           "python": platform.python_version(), "spill_store_bytes": spills(report),
+           "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES", "")}
+    print(f"Device: {summary['device']['device']} ({summary['device']['multiprocessors']} multiprocessors), "
+          f"{version}", flush=True)
+    for c in summary["checks"]:
+        err = c.get("max_rel_err", c.get("max_err_over_update"))
+        print(f"check {c['check']:10s} {c.get('precision', ''):6s} split {c.get('nsplit', '-')}: "
+              f"{err:.2e} (bound {c['bound']:.1e}) {'ok' if c['ok'] else 'FAILED'}", flush=True)
+    for name, f in summary["chain_fits"].items():
+        print(f"{name:36s}: {f['us_per_product']:.3f} µs per dependent product, "
+              f"{f['us_per_iteration_besides']:.2f} µs per loop iteration besides", flush=True)
+    for name, us in summary["adam_us_per_step"].items():
+        print(f"{name:36s}: {us:.2f} µs per Adam step of {args.adam_n} entries", flush=True)
+    if summary["floor_estimate"]:
+        e = summary["floor_estimate"]
+        print(f"floor of a one-kernel CUDA S-step: {e['products']} × {e['us_per_product']:.3f} µs "
+              f"({e['product_kernel']}) + {e['adam_us']:.2f} µs Adam = {e['us_per_step']:.1f} µs per step, "
+              "before the head, the loss, the gather and the statistics", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"env": env, "args": vars(args), "lines": lines, **summary}, f, indent=1)
+    if summary["failed_checks"]:
+        raise SystemExit(f"kernel_cuda: {len(summary['failed_checks'])} kernel(s) disagree with the host "
+                         "computation beyond their bound (see the lines marked FAILED); timings not to be used")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
