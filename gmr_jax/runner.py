@@ -423,8 +423,23 @@ def _restore(cfg: config.Config, seeds, ckpt_dir: pathlib.Path, template, report
             moved = _set_aside(ckpt_dir, step)
             report(f"checkpoint step {step} is corrupt ({err}); set aside as {moved.name}")
             continue
-        return state, [{k: np.asarray(v) for k, v in h.items()} for h in saved["history"]]
+        return state, history_from_metadata(saved)
     return None, []
+
+
+def history_metadata(history) -> dict:
+    """A checkpoint's record of the metrics so far: ``history`` (one JSON dict per iteration) and
+    ``history_dtypes`` (each metric's dtype, which JSON's numbers do not keep)."""
+    dtypes = {k: np.asarray(v).dtype.str for k, v in history[-1].items()} if history else {}
+    return {"history": [jsonable(h) for h in history], "history_dtypes": dtypes}
+
+
+def history_from_metadata(saved: dict) -> list[dict]:
+    """``history_metadata``'s inverse: the iterations' metrics as numpy arrays of their own
+    dtypes, so that a resumed run's history (and every mean of it) is the uninterrupted run's
+    bit for bit; checkpoints written before dtypes were recorded give numpy's defaults."""
+    dtypes = saved.get("history_dtypes", {})
+    return [{k: np.asarray(v, dtype=dtypes.get(k)) for k, v in h.items()} for h in saved["history"]]
 
 
 def check_fresh(run_dirs) -> None:
@@ -607,7 +622,7 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
     def save(done: int, st, hist):
         with timer("checkpoint_s"):
             checkpoint.save(ckpt_dir, layout.real(st), step=done,
-                            metadata={**meta, "history": [jsonable(h) for h in hist]})
+                            metadata={**meta, **history_metadata(hist)})
 
     try:
         for it in range(len(history), stop):

@@ -2,6 +2,7 @@
 run equals an uninterrupted one, progress reaches the callback, other settings are refused."""
 
 import dataclasses
+import json
 import sys
 import threading
 import time
@@ -85,8 +86,32 @@ def test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one(whole,
     assert checkpoint.latest(part / "checkpoints") == 3
     for name, value in result["history"].items():
         np.testing.assert_array_equal(extended["history"][name], value, err_msg=name)
+        assert extended["history"][name].dtype == value.dtype, name
     jax.tree_util.tree_map(np.testing.assert_array_equal, _final_state(cfg, part), _final_state(cfg, root / "whole"))
     np.testing.assert_array_equal(extended["robustness"]["mse"], result["robustness"]["mse"])
+
+
+def test_history_keeps_its_dtypes_through_a_checkpoint():
+    """A checkpoint stores the metrics as JSON numbers; restored, they have their own dtypes
+    again, so that a resumed float32 run's means (float32 sums) are the uninterrupted run's."""
+    rng = np.random.default_rng(0)
+    history = [{"sample_cost": rng.normal(size=(2, 3)).astype(np.float32) * 100,
+                "kl": np.array([np.inf, 1.5], np.float32), "iters": np.array([3, 4], np.int32),
+                "seed_failed": np.array([False, True])} for _ in range(2)]
+    saved = json.loads(json.dumps(runner.history_metadata(history)))
+    restored = runner.history_from_metadata(saved)
+    for got, want in zip(restored, history):
+        for name, value in want.items():
+            assert got[name].dtype == value.dtype, name
+            # non-finite floats are stored as NaN (runner.jsonable)
+            np.testing.assert_array_equal(got[name], np.where(np.isfinite(value), value, np.nan)
+                                          if value.dtype.kind == "f" else value, err_msg=name)
+    # the mean over conditions, as the report takes it, is the same to the last bit
+    assert np.mean(restored[0]["sample_cost"], axis=-1).tobytes() == np.mean(history[0]["sample_cost"],
+                                                                                 axis=-1).tobytes()
+    # a checkpoint written before the dtypes were kept restores with numpy's defaults
+    del saved["history_dtypes"]
+    assert runner.history_from_metadata(saved)[0]["sample_cost"].dtype == np.float64
 
 
 def test_other_settings_and_fewer_iterations_are_refused(whole, scheduler):
