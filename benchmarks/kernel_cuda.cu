@@ -18,7 +18,7 @@
 //   grid_adam   Adam on n parameters per step, split over a cooperative grid of one block per
 //               multiprocessor: block 0 reads the weights and writes a gradient (as the block
 //               that forms the step's products would), grid sync, every block updates its slice
-//               of (w, m, v) in global memory, grid sync. Mode "sync" keeps the two syncs alone,
+//               of (w, m, v) in global memory, grid sync (16-byte loads and stores throughout). Mode "sync" keeps the two syncs alone,
 //               mode "block" does the whole update in one block (no grid, no sync).
 
 #include <cooperative_groups.h>
@@ -216,27 +216,46 @@ struct AdamArgs {
 
 __device__ __forceinline__ float correction(float beta, int step) { return 1.f / (1.f - powf(beta, float(step + 1))); }
 
-__device__ __forceinline__ void adam_entry(const AdamArgs& a, int i, float c1, float c2) {
-  const float gi = a.g[i];
-  const float mi = a.b1 * a.m[i] + (1.f - a.b1) * gi;
-  const float vi = a.b2 * a.v[i] + (1.f - a.b2) * gi * gi;
-  a.m[i] = mi;
-  a.v[i] = vi;
-  a.w[i] -= a.lr * (mi * c1) / (sqrtf(vi * c2) + a.eps);
+__device__ __forceinline__ float adam_one(float& w, float& m, float& v, float g, float c1, float c2, const AdamArgs& a) {
+  m = a.b1 * m + (1.f - a.b1) * g;
+  v = a.b2 * v + (1.f - a.b2) * g * g;
+  w -= a.lr * (m * c1) / (sqrtf(v * c2) + a.eps);
+  return w;
+}
+
+// entries 4i .. 4i+3 (16-byte loads and stores: n is a multiple of 4)
+__device__ __forceinline__ void adam_quad(const AdamArgs& a, int i, float c1, float c2) {
+  const float4 g = reinterpret_cast<const float4*>(a.g)[i];
+  float4 w = reinterpret_cast<float4*>(a.w)[i], m = reinterpret_cast<float4*>(a.m)[i],
+         v = reinterpret_cast<float4*>(a.v)[i];
+  adam_one(w.x, m.x, v.x, g.x, c1, c2, a);
+  adam_one(w.y, m.y, v.y, g.y, c1, c2, a);
+  adam_one(w.z, m.z, v.z, g.z, c1, c2, a);
+  adam_one(w.w, m.w, v.w, g.w, c1, c2, a);
+  reinterpret_cast<float4*>(a.w)[i] = w;
+  reinterpret_cast<float4*>(a.m)[i] = m;
+  reinterpret_cast<float4*>(a.v)[i] = v;
+}
+
+__device__ __forceinline__ void gradient_quad(const AdamArgs& a, int i) {
+  const float4 w = reinterpret_cast<const float4*>(a.w)[i];
+  reinterpret_cast<float4*>(a.g)[i] =
+      make_float4(1e-3f * w.x + 1e-4f, 1e-3f * w.y + 1e-4f, 1e-3f * w.z + 1e-4f, 1e-3f * w.w + 1e-4f);
 }
 
 // mode 0: the grid's two syncs alone; mode 1: gradient in block 0, sync, Adam over the grid, sync
 __global__ void grid_adam(AdamArgs a, int mode) {
   cg::grid_group grid = cg::this_grid();
-  const int per_block = (a.n + gridDim.x - 1) / gridDim.x;
-  const int lo = blockIdx.x * per_block, hi = min(a.n, lo + per_block);
+  const int quads = a.n / 4;
+  const int per_block = (quads + gridDim.x - 1) / gridDim.x;
+  const int lo = blockIdx.x * per_block, hi = min(quads, lo + per_block);
   for (int s = 0; s < a.steps; ++s) {
     if (mode == 1 && blockIdx.x == 0)
-      for (int i = threadIdx.x; i < a.n; i += blockDim.x) a.g[i] = 1e-3f * a.w[i] + 1e-4f;
+      for (int i = threadIdx.x; i < quads; i += blockDim.x) gradient_quad(a, i);
     grid.sync();
     if (mode == 1) {
       const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
-      for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) adam_entry(a, i, c1, c2);
+      for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) adam_quad(a, i, c1, c2);
     }
     grid.sync();
   }
@@ -244,11 +263,12 @@ __global__ void grid_adam(AdamArgs a, int mode) {
 
 // the whole update in one block
 __global__ void block_adam(AdamArgs a) {
+  const int quads = a.n / 4;
   for (int s = 0; s < a.steps; ++s) {
     const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
-    for (int i = threadIdx.x; i < a.n; i += blockDim.x) {
-      a.g[i] = 1e-3f * a.w[i] + 1e-4f;
-      adam_entry(a, i, c1, c2);
+    for (int i = threadIdx.x; i < quads; i += blockDim.x) {
+      gradient_quad(a, i);
+      adam_quad(a, i, c1, c2);
     }
     __syncthreads();
   }
@@ -332,6 +352,10 @@ int main(int argc, char** argv) {
   const int repeats = argc > 3 ? std::atoi(argv[3]) : 5;
   const int adam_n = argc > 4 ? std::atoi(argv[4]) : 41600;
   const int adam_steps = argc > 5 ? std::atoi(argv[5]) : 2000;
+  if (adam_n % 4 != 0) {
+    fprintf(stderr, "adam_n=%d: the Adam kernels take entries in fours; give a multiple of 4\n", adam_n);
+    return 2;
+  }
 
   cudaDeviceProp prop;
   CHECK(cudaGetDeviceProperties(&prop, 0));
@@ -413,11 +437,11 @@ int main(int argc, char** argv) {
     return err / max_update;
   };
   int blocks_per_sm = 0;
-  const int threads = 256;
+  int threads = 1024;
   CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks_per_sm, grid_adam, threads, 0));
   const int grid = prop.multiProcessorCount;
   if (blocks_per_sm < 1) {
-    fprintf(stderr, "grid_adam cannot run one block per multiprocessor\n");
+    fprintf(stderr, "grid_adam cannot run one block of %d threads per multiprocessor\n", threads);
     return 1;
   }
   auto launch_grid = [&](int mode, int n_steps) {
@@ -440,11 +464,14 @@ int main(int argc, char** argv) {
          check_steps, update_error(got_w), max_abs_w, max_update);
 
   for (int mode = 0; mode < 2; ++mode) {
-    reset();
-    const float ms = time_launches([&] { launch_grid(mode, adam_steps); }, repeats);
-    printf("{\"kernel\": \"grid_adam\", \"mode\": \"%s\", \"blocks\": %d, \"threads\": %d, \"n\": %d, \"steps\": %d, "
-           "\"us_per_step\": %.4f}\n",
-           mode == 0 ? "sync" : "update", grid, threads, adam_n, adam_steps, 1e3 * ms / adam_steps);
+    for (int bt : {256, 1024}) {
+      threads = bt;
+      reset();
+      const float ms = time_launches([&] { launch_grid(mode, adam_steps); }, repeats);
+      printf("{\"kernel\": \"grid_adam\", \"mode\": \"%s\", \"blocks\": %d, \"threads\": %d, \"n\": %d, "
+             "\"steps\": %d, \"us_per_step\": %.4f}\n",
+             mode == 0 ? "sync" : "update", grid, threads, adam_n, adam_steps, 1e3 * ms / adam_steps);
+    }
   }
   for (int bt : {256, 1024}) {
     reset();

@@ -125,13 +125,14 @@ def summarize(lines: list[dict], products: int) -> dict:
             for r in lines if r.get("kernel", "").endswith("adam")}
     estimate = None
     accurate = {k: v for k, v in fits.items() if "_tf32x3_" in k or "_ieee_" in k}
-    grid_update = adam.get("grid_adam_update_256threads")
-    if accurate and grid_update is not None:
+    updates = {k: v for k, v in adam.items() if k.startswith("grid_adam_update")}
+    if accurate and updates:
         best = min(accurate, key=lambda k: accurate[k]["us_per_product"])
+        update = min(updates, key=updates.get)
         estimate = {"products": products, "product_kernel": best,
                     "us_per_product": accurate[best]["us_per_product"],
-                    "adam_us": grid_update,
-                    "us_per_step": products * accurate[best]["us_per_product"] + grid_update}
+                    "adam_kernel": update, "adam_us": updates[update],
+                    "us_per_step": products * accurate[best]["us_per_product"] + updates[update]}
     return {"device": device, "checks": checks, "failed_checks": failed, "chain_fits": fits,
             "adam_us_per_step": adam, "floor_estimate": estimate}
 

@@ -12,7 +12,9 @@ The S-step is traced with full float32 matrix products, as training traces it
 states, gains, symmetric positive-definite precisions and state covariances) with the shapes of
 the real ones: the time of a step does not depend on the values. ``--adam-entries all,trained``
 times the packed form with Adam over the whole packed vector and over its trained entries only
-(``SStepConfig.adam_entries``) in the same run. ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
+(``SStepConfig.adam_entries``) in the same run, ``--statistics epoch,step`` with the loss's
+statistics evaluated per epoch from the kept weights and inside every step
+(``SStepConfig.statistics``). ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
 Adam step, the device's busy and idle time, the costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
@@ -172,6 +174,9 @@ def parse_args(argv=None):
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
                    help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
+    p.add_argument("--statistics", default=config.SStepConfig.statistics,
+                   help=f"comma-separated sstep.statistics of the packed form ({', '.join(config.SSTEP_STATISTICS)}): "
+                        "the loss's statistics per epoch from the kept weights, or inside every step")
     p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries,
                    help=f"comma-separated sstep.adam_entries of the packed form ({', '.join(config.SSTEP_ADAM_ENTRIES)}; "
                         "default: %(default)s)")
@@ -199,6 +204,7 @@ def parse_args(argv=None):
                    "the device's idle share (GPU only; benchmarks.trace)")
     args = p.parse_args(argv)
     for flag, value, allowed in (("--adam-entries", args.adam_entries, config.SSTEP_ADAM_ENTRIES),
+                                 ("--statistics", args.statistics, config.SSTEP_STATISTICS),
                                  ("--kernel-dot", args.kernel_dot, gmr_kernel.DOTS)):
         bad = [v for v in value.split(",") if v not in allowed]
         if bad:
@@ -219,11 +225,12 @@ def parse_args(argv=None):
 
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
             adam_entries: str = config.SStepConfig.adam_entries,
-            matmul_precision: str = mdgps.MATMUL_PRECISION, options: str = "runner") -> tuple[dict, jax.Array]:
+            matmul_precision: str = mdgps.MATMUL_PRECISION, options: str = "runner",
+            stats_at: str = config.SStepConfig.statistics) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration (``options``: the runner's XLA options or
     none); returns its result row (and prints it) and the trained weights of the first timed
     S-step, [seeds, n]."""
-    tag = (f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}" if impl == "packed" else "")
+    tag = (f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}_{stats_at}" if impl == "packed" else "")
            + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
            + ("" if options == "runner" else f"_{options}"))
     options_given = compiler_options(options, args.seeds)
@@ -231,7 +238,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     traced_as = (functools.partial(sharding.seed_block, args.seeds) if options == "runner"
                  else contextlib.nullcontext)
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
-                       sstep__adam_entries=adam_entries)
+                       sstep__adam_entries=adam_entries, sstep__statistics=stats_at)
     pol = policies.for_config(cfg)
     # with --against-float64, the data and initial weights are made in float64 and rounded
     made = jnp.float64 if args.against_float64 else dtype
@@ -287,6 +294,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     row = {"algorithm": algorithm, "scenario": scenario, "unroll": unroll, "impl": impl,
            "matmul_precision": matmul_precision, "compiler_options": options_given,
            "adam_entries": adam_entries if impl == "packed" else None,
+           "statistics": stats_at if impl == "packed" else None,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
@@ -297,7 +305,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     if exact is not None:
         row.update({f"{k}_vs_float64": v for k, v in _relative_differences(weights, exact).items()})
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
-            else f"{impl}/{adam_entries}" if impl == "packed" else impl)
+            else f"{impl}/{adam_entries}/{stats_at}" if impl == "packed" else impl)
     if matmul_precision != mdgps.MATMUL_PRECISION:
         name += f"/{matmul_precision}"
     if options != "runner":
@@ -382,15 +390,17 @@ def main(argv=None) -> int:
                 first = None
                 for impl in args.impl.split(","):
                     variants = ([(int(w), d, None) for w in args.num_warps.split(",") for d in args.kernel_dot.split(",")]
-                                if impl == "kernel" else [(None, None, e) for e in args.adam_entries.split(",")]
+                                if impl == "kernel" else [(None, None, (e, st)) for e in args.adam_entries.split(",")
+                                                          for st in args.statistics.split(",")]
                                 if impl == "packed" else [(None, None, None)])
                     variants = [v + (mp, o) for v in variants for mp in args.matmul_precision.split(",")
                                 for o in args.compiler_options.split(",")]
                     for warps, dot, entries, matmul_precision, options in variants:
                         if warps:
                             gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
-                        row, weights = measure(algorithm, scenario, unroll, impl, args, dtype,
-                                               entries or config.SStepConfig.adam_entries, matmul_precision, options)
+                        entries, stats = entries or (config.SStepConfig.adam_entries, config.SStepConfig.statistics)
+                        row, weights = measure(algorithm, scenario, unroll, impl, args, dtype, entries,
+                                               matmul_precision, options, stats)
                         # every form trains the same weights to round-off: per seed, the largest
                         # difference from the first form listed relative to that seed's largest
                         # weight; the row reports the largest and the median over seeds

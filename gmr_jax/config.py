@@ -333,6 +333,7 @@ class PolicyPriorConfig:
 
 SSTEP_IMPLS = ("auto", "kernel", "packed", "reference")
 SSTEP_ADAM_ENTRIES = ("all", "trained")
+SSTEP_STATISTICS = ("epoch", "step")
 
 
 @dataclass(frozen=True)
@@ -365,6 +366,12 @@ class SStepConfig:
         "trained" makes the S-step 21 % (GMR) and 10 % (MLP) faster with 256 seeds side by side
         and 2–13 % slower with one seed (benchmarks/RESULTS.md), so "all" is the default and
         runs of many seeds should set "trained" (the CLI does from 256 seeds per GPU).
+      statistics: when the packed form computes its per-step statistics (the loss and its terms,
+        which the gradient does not need; their epoch means are the S-step's metrics): "epoch"
+        keeps an epoch's weights and evaluates all its steps at once after the epoch, "step"
+        inside every minibatch step. The same values up to the order of their sums, and the same
+        weights; on an H100 the statistics are a third of a one-seed GMR step's time inside the
+        loop (benchmarks/RESULTS.md).
     """
 
     lr: float = 1e-3
@@ -380,10 +387,12 @@ class SStepConfig:
     impl: str = "auto"
     unroll: int = 1
     adam_entries: str = "all"
+    statistics: str = "epoch"
 
     def __post_init__(self):
         check_choice("sstep.impl", self.impl, SSTEP_IMPLS)
         check_choice("sstep.adam_entries", self.adam_entries, SSTEP_ADAM_ENTRIES)
+        check_choice("sstep.statistics", self.statistics, SSTEP_STATISTICS)
         for name in ("epochs", "batch_size", "unroll"):
             check_positive_int(f"sstep.{name}", getattr(self, name))
         for name in ("lr", "eps", "obs_std_floor", "weight_clip"):

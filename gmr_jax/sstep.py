@@ -228,7 +228,9 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     Everything that does not depend on the weights is done before the loop: the per-datum
     constants (one matrix, so a minibatch is one gather), every epoch's shuffle, every
     minibatch's random numbers and Adam's bias corrections (``_schedule``). The loop body is then
-    the gather, ``form.value_and_grad``, the L2 term and Adam.
+    the gather, ``form.value_and_grad``, the L2 term and Adam; the statistics (loss and aux, which
+    the gradient does not need) are evaluated inside each step or per epoch from the epoch's
+    kept weights (``cfg.statistics``).
 
     With ``cfg.adam_entries == "trained"`` (and a ``form.trained``), the loop carries only the
     trained entries w and Adam's moments of them: θ is formed from w each step by one gather
@@ -259,23 +261,53 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         w0 = theta0[trained]
     stats_def = []
 
-    def step(carry, inputs):
-        w, mu, nu, l2 = carry
-        i, eps, c1, c2 = inputs
+    def update(w, mu, nu, i, eps, c1, c2):
+        """One minibatch step: (w, μ, ν) after Adam, and the step's loss value and aux."""
         (value, aux), grad = form.value_and_grad(params, expand(w), rows[i], eps)
         g = grad if trained is None else grad[trained]
         # d(β·Σθ²)/dθ as autodiff forms it, β·(2θ)
         w_new, mu, nu = adam_update(cfg, w, mu, nu, g + cfg.weight_decay * (2.0 * w), c1, c2)
+        return w_new, mu, nu, value, aux
+
+    def statistics(value, aux, l2):
         stats, treedef = _stats(value + cfg.weight_decay * l2, value, aux)
         stats_def.append(treedef)
-        # Σθ² of the next step's weights, summed as soon as they are made and carried over, so
-        # that the next step does not start with this sum (the same sum of the same weights)
-        return (w_new, mu, nu, l2_penalty(w_new)), stats
+        return stats
 
     zeros = jnp.zeros_like(w0)
-    (w, *_), stats = lax.scan(step, (w0, zeros, zeros, l2_penalty(w0)), (idx, noise, c1, c2),
-                              unroll=min(cfg.unroll, len(idx)))
-    means = _epoch_means(cfg, stats)
+    if cfg.statistics == "step":
+        def step(carry, inputs):
+            w, mu, nu, l2 = carry
+            w_new, mu, nu, value, aux = update(w, mu, nu, *inputs)
+            # Σθ² of the next step's weights, summed as soon as they are made and carried over,
+            # so that the next step does not start with this sum (the same sum of the same weights)
+            return (w_new, mu, nu, l2_penalty(w_new)), statistics(value, aux, l2)
+
+        (w, *_), stats = lax.scan(step, (w0, zeros, zeros, l2_penalty(w0)), (idx, noise, c1, c2),
+                                  unroll=min(cfg.unroll, len(idx)))
+        means = _epoch_means(cfg, stats)
+    else:
+        # The loss value only feeds the statistics: a step computes the gradient alone (XLA drops
+        # the rest) and keeps its weights; after the epoch one batched forward pass evaluates
+        # all of its steps, each on its own weights, minibatch and noise.
+        def step(carry, inputs):
+            w, mu, nu = carry
+            w_new, mu, nu, _, _ = update(w, mu, nu, *inputs)
+            return (w_new, mu, nu), w
+
+        def evaluate(w, i, eps):
+            (value, aux), _ = form.value_and_grad(params, expand(w), rows[i], eps)
+            return statistics(value, aux, l2_penalty(w))
+
+        nb = len(idx) // cfg.epochs
+
+        def epoch(carry, inputs):
+            carry, ws = lax.scan(step, carry, inputs, unroll=min(cfg.unroll, nb))
+            return carry, jnp.mean(jax.vmap(evaluate)(ws, inputs[0], inputs[1]), axis=0)
+
+        by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((cfg.epochs, nb) + a.shape[1:]),
+                                          (idx, noise, c1, c2))
+        (w, *_), means = lax.scan(epoch, (w0, zeros, zeros), by_epoch)
     return form.unpack(params, expand(w)), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
 
 

@@ -468,6 +468,29 @@ def test_adam_on_trained_entries_takes_the_same_steps(name):
         SStepConfig(adam_entries="padding")
 
 
+@pytest.mark.parametrize("name", ["mlp", "gmr"])
+def test_statistics_per_epoch_equal_those_of_every_step(name):
+    """``SStepConfig.statistics="epoch"`` (the steps compute the gradient alone and keep their
+    weights; each epoch's statistics come from one batched evaluation of its steps afterwards)
+    against "step" (inside every step): the same steps on the same weights, minibatches and
+    noise, so the same S-step up to how XLA fuses and sums the two programs; tolerance from the
+    computation, as in ``test_adam_on_trained_entries_takes_the_same_steps``. Every epoch's
+    metrics are compared, not only the last."""
+    pol, _ = _policy(name)
+    data = _full_data(12)
+    params = pol.init(jax.random.key(2), dX, dU)
+    cfg_step = SStepConfig(epochs=3, batch_size=20, statistics="step")
+    ref, tol = measured_tol(lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg_step, impl="packed"),
+                            (params, data), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-6)
+    got = _sstep(pol, params, data, jax.random.key(3), SStepConfig(epochs=3, batch_size=20, statistics="epoch"),
+                 impl="packed")
+    assert_trees_within(got, ref, tol)
+    assert got[1]["loss"].shape == (3,) and len(set(np.asarray(got[1]["loss"]).tolist())) == 3
+    with pytest.raises(ValueError, match="sstep.statistics"):
+        SStepConfig(statistics="never")
+
+
 # ------------------------------------------------ the kernel form against the packed form
 
 @pytest.mark.parametrize("name", ["gmr", "gmr_raw", "gmr_uneven"])
