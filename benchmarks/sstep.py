@@ -264,6 +264,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     with jax.default_matmul_precision(matmul_precision), traced_as():  # as training traces it
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
+    with traced_as():
+        resolved = sstep.default_statistics() if stats_at == "auto" else stats_at
     hlo = compiled.as_text()
     if args.hlo_dir:
         os.makedirs(args.hlo_dir, exist_ok=True)
@@ -295,6 +297,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "matmul_precision": matmul_precision, "compiler_options": options_given,
            "adam_entries": adam_entries if impl == "packed" else None,
            "statistics": stats_at if impl == "packed" else None,
+           "statistics_resolved": resolved if impl == "packed" else None,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,

@@ -333,7 +333,7 @@ class PolicyPriorConfig:
 
 SSTEP_IMPLS = ("auto", "kernel", "packed", "reference")
 SSTEP_ADAM_ENTRIES = ("all", "trained")
-SSTEP_STATISTICS = ("epoch", "step")
+SSTEP_STATISTICS = ("auto", "epoch", "step")
 
 
 @dataclass(frozen=True)
@@ -369,9 +369,11 @@ class SStepConfig:
       statistics: when the packed form computes its per-step statistics (the loss and its terms,
         which the gradient does not need; their epoch means are the S-step's metrics): "epoch"
         keeps an epoch's weights and evaluates all its steps at once after the epoch, "step"
-        inside every minibatch step. The same values up to the order of their sums, and the same
-        weights; on an H100 the statistics are a third of a one-seed GMR step's time inside the
-        loop (benchmarks/RESULTS.md).
+        inside every minibatch step, "auto" per epoch in the runner's programs of up to
+        ``sharding.EPOCH_STATISTICS_MAX_SEEDS`` seeds per GPU and per step elsewhere. The same
+        values up to the order of their sums, and the same weights. On an H100 a one-seed GMR
+        Adam step takes 34 µs per epoch against 44 µs per step; with 32 or more seeds per GPU
+        the kept weights cost more than they save (benchmarks/RESULTS.md).
     """
 
     lr: float = 1e-3
@@ -387,7 +389,7 @@ class SStepConfig:
     impl: str = "auto"
     unroll: int = 1
     adam_entries: str = "all"
-    statistics: str = "epoch"
+    statistics: str = "auto"
 
     def __post_init__(self):
         check_choice("sstep.impl", self.impl, SSTEP_IMPLS)

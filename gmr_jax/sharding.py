@@ -17,6 +17,7 @@ plain vmapped program (of the plain program for a single seed, :func:`over_seed_
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import os
 import re
@@ -161,18 +162,44 @@ slower at 64 (the sums grow with the seed batch, a dot's time hardly does; bench
 nineteenth to twenty-first sessions; 33–63 seeds and float64 beyond one seed not measured)."""
 
 
+EPOCH_STATISTICS_MAX_SEEDS = 8
+"""The most seeds per GPU whose programs evaluate the packed S-step's statistics per epoch
+(``SStepConfig.statistics`` "auto"): measured per Adam step of GMR A,B on an H100 in float32,
+44.4 → 34.0 µs at one seed, 64.3 → 62.7 µs at 8, but 115.8 → 136.7 µs at 32 and 365.8 → 489.3
+µs at 256 (the kept weights are written every step, the batched evaluation grows with the
+seeds; benchmarks/RESULTS.md, twenty-second session; 9–31 seeds not measured)."""
+
+_BLOCK_SEEDS = contextvars.ContextVar("block_seeds", default=None)
+
+
 @contextlib.contextmanager
 def seed_block(seeds: int):
     """Trace-time choices for a program of ``seeds`` seeds per device (``over_seed_axis``' block):
     with up to ``REDUCED_PRODUCTS_MAX_SEEDS`` of them on a GPU, the policies' packed S-step forms
     may trace their small products as sums of broadcast products
     (``policies.base.products_as_reductions``; GMR's does), which XLA fuses with the operations
-    around them; elsewhere nothing. Every input of that choice (platform, seeds per block) is part
+    around them; and ``block_seeds`` tells the S-step how many seeds share the device
+    (``epoch_statistics_for``). Every input of those choices (platform, seeds per block) is part
     of the program's jit cache key: the default device and the block's shapes."""
     from gmr_jax.policies import base
 
-    with base.products_as_reductions(reduced_products_for(seeds, target_platform())):
-        yield
+    token = _BLOCK_SEEDS.set(int(seeds))
+    try:
+        with base.products_as_reductions(reduced_products_for(seeds, target_platform())):
+            yield
+    finally:
+        _BLOCK_SEEDS.reset(token)
+
+
+def block_seeds() -> int | None:
+    """The seeds per device of the program being traced under :func:`seed_block` (None outside)."""
+    return _BLOCK_SEEDS.get()
+
+
+def epoch_statistics_for(seeds_per_device: int, platform: str) -> bool:
+    """Whether a program of ``seeds_per_device`` seeds per device on ``platform`` evaluates the
+    packed S-step's statistics per epoch ("auto" of ``SStepConfig.statistics``)."""
+    return platform == "gpu" and seeds_per_device <= EPOCH_STATISTICS_MAX_SEEDS
 
 
 def reduced_products_for(seeds_per_device: int, platform: str) -> bool:

@@ -116,6 +116,17 @@ def default_impl() -> str:
     return "reference" if sharding.target_platform() == "cpu" else "packed"
 
 
+def default_statistics() -> str:
+    """``SStepConfig.statistics`` "auto": "epoch" for a program traced under
+    ``sharding.seed_block`` with up to ``sharding.EPOCH_STATISTICS_MAX_SEEDS`` seeds per GPU,
+    where a minibatch step is bound by its number of kernels and the statistics' own kernels are
+    a third of them; "step" elsewhere (on a CPU, and for many seeds side by side, where the kept
+    weights' traffic and the batched evaluation cost more than the statistics inside the step)."""
+    seeds = sharding.block_seeds()
+    on = seeds is not None and sharding.epoch_statistics_for(seeds, sharding.target_platform())
+    return "epoch" if on else "step"
+
+
 def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStepConfig = SStepConfig(),
           *, impl: str | None = None):
     """One S-step: train ``params.net`` on ``data`` and finalise the policy.
@@ -275,7 +286,7 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         return stats
 
     zeros = jnp.zeros_like(w0)
-    if cfg.statistics == "step":
+    if (default_statistics() if cfg.statistics == "auto" else cfg.statistics) == "step":
         def step(carry, inputs):
             w, mu, nu, l2 = carry
             w_new, mu, nu, value, aux = update(w, mu, nu, *inputs)

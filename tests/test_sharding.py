@@ -159,7 +159,7 @@ def test_trace_time_choices_follow_the_default_device():
     host-CPU runs trace the CPU's choices, and the other way round), and the simulator cache
     keeps one plant per resolved backend. A program of one seed per device traces the packed
     forms' products as reductions on a GPU only, and only up to ``REDUCED_PRODUCTS_MAX_SEEDS``
-    seeds per device."""
+    seeds per device; its S-step's statistics per epoch up to ``EPOCH_STATISTICS_MAX_SEEDS``."""
     from gmr_jax import config, sim, sstep
     from gmr_jax.policies import base
 
@@ -175,8 +175,17 @@ def test_trace_time_choices_follow_the_default_device():
                 wanted = platform == "gpu" and seeds <= most
                 with sharding.seed_block(seeds):
                     assert base.reduced_products() == wanted
+                    assert sharding.block_seeds() == seeds
                 assert sharding.reduced_products_for(seeds, platform) == wanted
-            assert not base.reduced_products()
+            assert not base.reduced_products() and sharding.block_seeds() is None
+            # the S-step's statistics per epoch up to EPOCH_STATISTICS_MAX_SEEDS seeds per GPU
+            most = sharding.EPOCH_STATISTICS_MAX_SEEDS
+            for seeds in (1, most, most + 1):
+                wanted = platform == "gpu" and seeds <= most
+                with sharding.seed_block(seeds):
+                    assert sstep.default_statistics() == ("epoch" if wanted else "step")
+                assert sharding.epoch_statistics_for(seeds, platform) == wanted
+            assert sstep.default_statistics() == "step"  # outside the runner's seed blocks
     assert sharding.target_platform() == here
     assert sim.make_sim(config.SimConfig()).backend == ("mjx" if here == "gpu" else "mujoco")
 
