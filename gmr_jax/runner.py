@@ -660,6 +660,9 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
         if pending is not None:
             save(*pending)
     if scheduler.stop.is_set() and len(history) < stop:
+        if not history:
+            raise Interrupted("stopped before its first iteration, with no checkpoint (--resume starts it "
+                              "from the beginning)")
         raise Interrupted(f"stopped after iteration {len(history)} of {cfg.iterations}; "
                           f"its checkpoint is in {ckpt_dir}")
     return state, history, iteration_s
@@ -816,7 +819,20 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
                                            stability=stability, platform=(platforms or {}).get(key))
         try:
             return {key: futures[key].result() for key in configs}
+        except Interrupted:
+            # every run stops after its iteration in flight: say where each one stands
+            concurrent.futures.wait(futures.values())
+            raise Interrupted("; ".join(_where_stopped(f"{key[0]}/{key[1]}", futures[key]) for key in order)) \
+                from None
         except BaseException:
             scheduler.request_stop()  # the other runs end after their iteration in flight
             raise
+
+
+def _where_stopped(label: str, future: concurrent.futures.Future) -> str:
+    """One run's part of a stopped study's message: finished, stopped (where) or failed (why)."""
+    err = future.exception()
+    if err is None:
+        return f"{label} finished"
+    return f"{label} {err}" if isinstance(err, Interrupted) else f"{label} failed: {type(err).__name__}: {err}"
 

@@ -7,6 +7,7 @@ was written before, and a resumed run continues correctly.
 | NaN from the plant for one seed of several | that seed frozen at its last good iteration and named; the others run on unchanged | test_a_failed_seed_is_frozen_while_the_others_go_on |
 | a checkpoint write that fails half-way | CheckpointError; the previous checkpoint intact, resume continues | test_failed_checkpoint_write_keeps_the_previous_one |
 | stop request (Ctrl-C, SIGTERM) | the iteration in flight finishes and is checkpointed; resume equals an uninterrupted run | test_stop_request_checkpoints_and_resumes |
+| stop request before the first iteration, several runs | no checkpoint; the message says where each run stands | test_a_stopped_study_says_where_each_run_stands |
 | the process killed (kill -9) between iterations | resume equals an uninterrupted run | test_runner.py::test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one |
 | a corrupt newest checkpoint | set aside (renamed) and reported; resume from the one before | test_corrupt_newest_checkpoint_falls_back |
 | a missing MJCF scene | one line naming the file, exit 1 | test_missing_mjcf_is_one_line |
@@ -141,6 +142,23 @@ def test_stop_request_checkpoints_and_resumes(cfg, whole, scheduler):
         scheduler.stop.clear()
     assert checkpoint.all_steps(root / "stop" / "checkpoints") == [1]
     _same_history(runner.run(cfg, SEEDS, root / "stop", resume=True, scheduler=scheduler), result)
+
+
+def test_a_stopped_study_says_where_each_run_stands(cfg, whole, scheduler, tmp_path):
+    """A stop requested before the runs' first iteration (Ctrl-C during the compilation): no run
+    writes a checkpoint, and the study's message names every run and points at no checkpoint
+    that does not exist."""
+    configs = {("A", "mdgps"): cfg, ("B", "mdgps"): cfg}
+    scheduler.request_stop()
+    try:
+        with pytest.raises(runner.Interrupted) as info:
+            runner.run_all(configs, SEEDS, tmp_path, scheduler=scheduler)
+    finally:
+        scheduler.stop.clear()
+    first = "stopped before its first iteration, with no checkpoint (--resume starts it from the beginning)"
+    assert str(info.value) == f"A/mdgps {first}; B/mdgps {first}"
+    for key in configs:
+        assert checkpoint.all_steps(runner.run_folder(tmp_path, *key) / "checkpoints") == []
 
 
 def test_corrupt_newest_checkpoint_falls_back(cfg, whole, scheduler):
