@@ -1,0 +1,133 @@
+"""benchmarks.kernel_cuda: the fragment layout its tensor-core chain relies on, its reporting, and
+its build.
+
+The kernels themselves run on a GPU only, where the benchmark checks each against a
+double-precision host computation before timing it (and stops on a failed check). Here: a model
+of ``mma.m16n8k8``'s fragments (PTX's layout, one 16-row tile, 32 lanes) shows that storing W's
+rows in an accumulator fragment's order lets a product's output fragments serve as the next
+product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimate;
+and, where nvcc is installed, that the kernels build for sm_90 without spilling registers.
+"""
+
+import shutil
+
+import numpy as np
+import pytest
+
+from benchmarks import kernel_cuda
+
+SLOPE = 0.2
+
+
+def _lanes():
+    lane = np.arange(32)
+    return lane // 4, lane % 4  # g (group), t (thread in group)
+
+
+def _mma(a, b, c):
+    """mma.m16n8k8 on per-lane fragments: a [32, 4], b [32, 2], c [32, 4] -> d [32, 4] (PTX's
+    fragment layout for .tf32 A/B and .f32 C/D)."""
+    g, t = _lanes()
+    A = np.zeros((16, 8))
+    A[g, t], A[g + 8, t], A[g, t + 4], A[g + 8, t + 4] = a.T
+    B = np.zeros((8, 8))
+    B[t, g], B[t + 4, g] = b.T
+    C = np.zeros((16, 8))
+    C[g, 2 * t], C[g, 2 * t + 1], C[g + 8, 2 * t], C[g + 8, 2 * t + 1] = c.T
+    D = A @ B + C
+    return np.stack([D[g, 2 * t], D[g, 2 * t + 1], D[g + 8, 2 * t], D[g + 8, 2 * t + 1]], axis=1)
+
+
+def test_output_fragments_are_the_next_products_input_fragments():
+    """Three dependent products h ← leaky_relu(h W) of one 16-row tile, computed the way
+    ``chain_mma`` holds them (input fragment of k-step kk = (c0, c2, c1, c3) of the last
+    product's n-tile kk; B fragment (kk, nn) = W rows 8kk+2t and 8kk+2t+1 of column 8nn+g), equal
+    the plain matrix chain."""
+    rng = np.random.default_rng(0)
+    H = rng.normal(size=(16, 64))
+    W = rng.normal(size=(64, 64)) / 8
+    g, t = _lanes()
+    frag = [np.stack([H[g, 8 * kk + 2 * t], H[g + 8, 8 * kk + 2 * t], H[g, 8 * kk + 2 * t + 1],
+                      H[g + 8, 8 * kk + 2 * t + 1]], axis=1) for kk in range(8)]
+    ref = H
+    for _ in range(3):
+        acc = [np.zeros((32, 4)) for _ in range(8)]
+        for kk in range(8):
+            for nn in range(8):
+                b = np.stack([W[8 * kk + 2 * t, 8 * nn + g], W[8 * kk + 2 * t + 1, 8 * nn + g]], axis=1)
+                acc[nn] = _mma(frag[kk], b, acc[nn])
+        leaky = [np.where(c > 0, c, SLOPE * c) for c in acc]
+        frag = [c[:, [0, 2, 1, 3]] for c in leaky]
+        ref = ref @ W
+        ref = np.where(ref > 0, ref, SLOPE * ref)
+    # the kernel's write-back of the last product: frag[kk] = (c0, c2, c1, c3) of n-tile kk
+    out = np.zeros((16, 64))
+    for kk in range(8):
+        out[g, 8 * kk + 2 * t], out[g + 8, 8 * kk + 2 * t] = frag[kk][:, 0], frag[kk][:, 1]
+        out[g, 8 * kk + 2 * t + 1], out[g + 8, 8 * kk + 2 * t + 1] = frag[kk][:, 2], frag[kk][:, 3]
+    np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12 * np.max(np.abs(ref)))
+
+
+def _lines(chain_us, checks_err=1e-6):
+    """Executable output: a device line, checks, chain timings (µs = a + b·chain) and Adam."""
+    lines = [{"device": "GPU", "multiprocessors": 132, "sm": "9.0"}]
+    for precision, nsplit, threads, err in (("ieee", 0, 256, 1e-7), ("tf32", 1, 64, 5e-4),
+                                            ("tf32x3", 2, 128, checks_err)):
+        kernel = "chain_fma" if precision == "ieee" else "chain_mma"
+        lines.append({"check": kernel, "precision": precision, "nsplit": nsplit, "products": 4,
+                      "max_rel_err": err})
+        a, b = chain_us[precision]
+        lines += [{"kernel": kernel, "precision": precision, "nsplit": nsplit, "threads": threads,
+                   "chain": c, "steps": 10, "us_per_iteration": a + b * c} for c in (1, 8, 32)]
+    lines.append({"check": "grid_adam", "steps": 5, "max_err_over_update": 1e-5, "max_abs_w": 0.4,
+                  "max_update": 5e-3})
+    lines += [{"kernel": "grid_adam", "mode": "update", "threads": th, "us_per_step": us}
+              for th, us in ((256, 11.0), (1024, 7.0))]
+    lines.append({"kernel": "grid_adam", "mode": "sync", "threads": 256, "us_per_step": 2.2})
+    return lines
+
+
+def test_summary_fits_checks_and_estimate():
+    chain_us = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
+    s = kernel_cuda.summarize(_lines(chain_us), products=32)
+    assert not s["failed_checks"] and all(c["ok"] for c in s["checks"])
+    fits = s["chain_fits"]
+    assert fits["chain_mma_tf32x3_split2_128threads"]["us_per_product"] == pytest.approx(0.7)
+    assert fits["chain_fma_ieee_split0_256threads"]["us_per_iteration_besides"] == pytest.approx(0.05)
+    est = s["floor_estimate"]
+    # the fastest float32-accurate product (tf32x3 here; one TF32 pass is not float32-accurate)
+    # and the fastest grid update
+    assert est["product_kernel"] == "chain_mma_tf32x3_split2_128threads"
+    assert est["adam_kernel"] == "grid_adam_update_1024threads"
+    assert est["us_per_step"] == pytest.approx(32 * 0.7 + 7.0)
+    # a wrong fragment shows as an O(1) error, far above every bound
+    bad = kernel_cuda.summarize(_lines(chain_us, checks_err=0.5), products=32)
+    assert [c["precision"] for c in bad["failed_checks"]] == ["tf32x3"]
+
+
+def test_bounds_separate_round_off_from_a_wrong_kernel():
+    for precision in kernel_cuda.UNIT_ROUNDOFF:
+        assert kernel_cuda.chain_bound(precision, 4) < 0.2
+    # TF32's bound sits far above float32's and the three-pass split's in between
+    assert kernel_cuda.chain_bound("ieee", 4) < kernel_cuda.chain_bound("tf32x3", 4) < kernel_cuda.chain_bound("tf32", 4)
+    # Adam's float32 update after 5 steps, weights of 0.4, updates of 5e-3: a few times 1e-4
+    assert 1e-5 < kernel_cuda.adam_bound(5, 0.4, 5e-3) < 1e-3
+    with pytest.raises(ValueError, match="two distinct chain lengths"):
+        kernel_cuda.line_fit([(8, 1.0), (8, 2.0)])
+
+
+def test_missing_compiler_and_bad_arguments_are_one_line(capsys):
+    with pytest.raises(SystemExit, match="'/nonexistent/nvcc' was not found"):
+        kernel_cuda.main(["--nvcc", "/nonexistent/nvcc"])
+    with pytest.raises(SystemExit):
+        kernel_cuda.main(["--chain", "8"])
+    assert "at least two distinct positive lengths" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(shutil.which("nvcc") is None, reason="nvcc not installed")
+def test_kernels_build_for_hopper_without_spills(tmp_path):
+    exe, report = kernel_cuda.build("nvcc", "sm_90", str(tmp_path))
+    assert exe.exists()
+    for kernel in ("chain_fma", "chain_mma", "grid_adam", "block_adam"):
+        assert kernel in report
+    assert kernel_cuda.spills(report) == 0
