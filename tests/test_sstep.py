@@ -447,22 +447,29 @@ def test_trained_entries_cover_every_weight(name):
     assert outside.any() and np.all(ones[outside] == 0)
 
 
+def _packed_variant_agrees(name, cfg_ref: SStepConfig, cfg: SStepConfig):
+    """The packed S-step with ``cfg`` against ``cfg_ref`` (same data, weights and key), within
+    the tolerance measured from ``cfg_ref``'s sensitivity to ε-perturbed inputs; returns
+    (``cfg``'s (params, metrics), the initial params)."""
+    pol, _ = _policy(name)
+    data = _full_data(12)
+    params = pol.init(jax.random.key(2), dX, dU)
+    ref, tol = measured_tol(lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg_ref, impl="packed"),
+                            (params, data), SAFETY)
+    assert_tolerances_small(ref, tol, 1e-6)
+    got = _sstep(pol, params, data, jax.random.key(3), cfg, impl="packed")
+    assert_trees_within(got, ref, tol)
+    return got, params
+
+
 @pytest.mark.parametrize("name", ["mlp", "gmr"])
 def test_adam_on_trained_entries_takes_the_same_steps(name):
     """``SStepConfig.adam_entries="trained"`` (Adam carries the trained entries only and θ is
     formed from them each step) against "all": the same arithmetic on every weight, so the same
     S-step up to how XLA fuses (and rounds) the two programs: tolerance from the computation, as
     in ``test_unrolled_loop_takes_the_same_steps``."""
-    pol, _ = _policy(name)
-    data = _full_data(12)
-    params = pol.init(jax.random.key(2), dX, dU)
-    cfg_all = SStepConfig(epochs=3, batch_size=20)
-    ref, tol = measured_tol(lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg_all, impl="packed"),
-                            (params, data), SAFETY)
-    assert_tolerances_small(ref, tol, 1e-6)
-    got = _sstep(pol, params, data, jax.random.key(3), SStepConfig(epochs=3, batch_size=20, adam_entries="trained"),
-                 impl="packed")
-    assert_trees_within(got, ref, tol)
+    got, params = _packed_variant_agrees(name, SStepConfig(epochs=3, batch_size=20),
+                                         SStepConfig(epochs=3, batch_size=20, adam_entries="trained"))
     assert not np.allclose(ravel_pytree(got[0].net)[0], ravel_pytree(params.net)[0], atol=1e-3)
     with pytest.raises(ValueError, match="sstep.adam_entries"):
         SStepConfig(adam_entries="padding")
@@ -476,16 +483,8 @@ def test_statistics_per_epoch_equal_those_of_every_step(name):
     noise, so the same S-step up to how XLA fuses and sums the two programs; tolerance from the
     computation, as in ``test_adam_on_trained_entries_takes_the_same_steps``. Every epoch's
     metrics are compared, not only the last."""
-    pol, _ = _policy(name)
-    data = _full_data(12)
-    params = pol.init(jax.random.key(2), dX, dU)
-    cfg_step = SStepConfig(epochs=3, batch_size=20, statistics="step")
-    ref, tol = measured_tol(lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg_step, impl="packed"),
-                            (params, data), SAFETY)
-    assert_tolerances_small(ref, tol, 1e-6)
-    got = _sstep(pol, params, data, jax.random.key(3), SStepConfig(epochs=3, batch_size=20, statistics="epoch"),
-                 impl="packed")
-    assert_trees_within(got, ref, tol)
+    got, _ = _packed_variant_agrees(name, SStepConfig(epochs=3, batch_size=20, statistics="step"),
+                                    SStepConfig(epochs=3, batch_size=20, statistics="epoch"))
     assert got[1]["loss"].shape == (3,) and len(set(np.asarray(got[1]["loss"]).tolist())) == 3
     with pytest.raises(ValueError, match="sstep.statistics"):
         SStepConfig(statistics="never")
