@@ -369,6 +369,9 @@ def run_study(args, t_start: float) -> int:
         # GMR's packed S-step traced with its products as reductions (sharding.seed_block)
         "gmr_products_as_reductions": sharding.reduced_products_for(
             sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
+        # the packed S-step's statistics per epoch (SStepConfig.statistics "auto")
+        "sstep_statistics_per_epoch": sharding.epoch_statistics_for(
+            sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
         "cpu_runs": on_cpu,
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         "host_cpu": host_cpu(),
