@@ -371,9 +371,9 @@ class SStepConfig:
         keeps an epoch's weights and evaluates all its steps at once after the epoch, "step"
         inside every minibatch step, "auto" per epoch in the runner's programs of up to
         ``sharding.EPOCH_STATISTICS_MAX_SEEDS`` seeds per GPU and per step elsewhere. The same
-        values up to the order of their sums, and the same weights. On an H100 a one-seed GMR
-        Adam step takes 34 µs per epoch against 44 µs per step; with 32 or more seeds per GPU
-        the kept weights cost more than they save (benchmarks/RESULTS.md).
+        values up to the order of their sums, and the same weights. Per epoch a GMR step of one
+        seed per GPU launches a sixth fewer kernels; with many seeds per GPU the kept weights
+        cost more than that saves (benchmarks/RESULTS.md, twenty-second session).
     """
 
     lr: float = 1e-3
