@@ -1,11 +1,11 @@
 """The floor of a hand-written CUDA S-step: warp-level products and a grid-wide Adam update.
 
-Goal 1 of issue 14 asks for 20 µs per GMR Adam step at one seed. XLA's programs stop at about
-11 dependent kernels (≈ 28 µs, ninth session), Pallas's kernels at 0.9 µs (Triton) and 0.64 µs
-(Mosaic GPU, bfloat16 only) per dependent product inside a kernel (``benchmarks.kernel_mlp``,
-twenty-first session); a step forms about 32 products. What the issue's last way — one kernel
-with the weights on chip — would cost written in CUDA itself is measured here, from the parts
-that set its floor (``benchmarks/kernel_cuda.cu``, built with nvcc for the GPU at hand):
+Goal 1 of issue 14 asks for 20 µs per GMR Adam step at one seed. XLA's programs are bound by
+their number of dependent kernels, Pallas's kernels by the cost of a dependent product inside a
+kernel (``benchmarks.kernel_mlp``); a step forms about 32 products. What the issue's last way —
+one kernel with the weights on chip — would cost written in CUDA itself is measured here, from
+the parts that set its floor (``benchmarks/kernel_cuda.cu``, built with nvcc for the GPU at
+hand):
 
 - ``chain_fma`` / ``chain_mma``: a loop whose body is ``--chain`` dependent products
   h ← leaky_relu(h W), h [32, 64] (the minibatch's 20 rows padded to two 16-row tiles), W [64, 64],
@@ -21,7 +21,8 @@ that set its floor (``benchmarks/kernel_cuda.cu``, built with nvcc for the GPU a
   alone; and the whole update in one block.
 
 Every kernel is checked against a double-precision host computation before it is timed (bounds
-below); a failed check stops the benchmark. The estimate it prints, ``--products`` dependent
+below); after a failed check the benchmark still writes its JSON, then exits with an error: its
+timings are not to be used. The estimate it prints, ``--products`` dependent
 products plus the grid's Adam step, leaves out the head, the loss, the gather and the
 statistics: it is a floor of the approach, not a kernel::
 

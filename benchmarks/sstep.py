@@ -265,7 +265,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
     with traced_as():
-        resolved = sstep.default_statistics() if stats_at == "auto" else stats_at
+        resolved = sstep.resolve_statistics(stats_at, sharding.block_seeds(), sharding.target_platform())
     hlo = compiled.as_text()
     if args.hlo_dir:
         os.makedirs(args.hlo_dir, exist_ok=True)

@@ -20,7 +20,7 @@ import time
 import traceback
 
 from experiments import xla_flags
-from gmr_jax import checkpoint, config, policies, runner, sharding, tasks
+from gmr_jax import checkpoint, config, policies, runner, sharding, sstep, tasks
 from gmr_jax.sim import MJCFError
 
 # Programs (iterations, evaluations) compiled at once (--compile-jobs): 2 and 4 were equally fast
@@ -369,9 +369,11 @@ def run_study(args, t_start: float) -> int:
         # GMR's packed S-step traced with its products as reductions (sharding.seed_block)
         "gmr_products_as_reductions": sharding.reduced_products_for(
             sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
-        # the packed S-step's statistics per epoch (SStepConfig.statistics "auto")
-        "sstep_statistics_per_epoch": sharding.epoch_statistics_for(
-            sharding.seeds_per_device(args.seeds, len(used)), used[0].platform),
+        # per run, where the packed S-step evaluates its statistics (SStepConfig.statistics as
+        # resolved for the run's platform; the reference form, a CPU's, does so in every step)
+        "sstep_statistics": {f"{s}/{a}": sstep.resolve_statistics(
+            c.sstep.statistics, sharding.seeds_per_device(args.seeds, len(used)),
+            args.platforms.get((s, a), used[0].platform)) for (s, a), c in args.configs.items()},
         "cpu_runs": on_cpu,
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         "host_cpu": host_cpu(),

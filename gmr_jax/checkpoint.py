@@ -319,7 +319,8 @@ def read_metadata(path, step: int | None = None) -> dict:
         manager.close()
 
 
-def restore(path, template, step: int | None = None, expect: dict | None = None) -> tuple[Any, dict]:
+def restore(path, template, step: int | None = None, expect: dict | None = None,
+            fill: dict | None = None) -> tuple[Any, dict]:
     """Read checkpoint ``step`` (default: the latest) into the structure of ``template``.
 
     Args:
@@ -329,6 +330,9 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
       step: the step to read; None → the latest.
       expect: optional dict; each of its entries must equal the same entry of the stored
         metadata (compared as JSON, e.g. ``{"config": config.to_dict(cfg)}``).
+      fill: optional {name: function}: the stored entry ``name`` passes through the function
+        before the comparison (e.g. to give a configuration written before a field existed that
+        field's default).
     Returns:
       (state, metadata): the state in the template's structure (jax arrays where the template
       has jax arrays) and the metadata dict given to ``save``.
@@ -361,7 +365,8 @@ def restore(path, template, step: int | None = None, expect: dict | None = None)
                 if name not in stored:
                     diffs.append(f"{name} (missing in the checkpoint)")
                 else:
-                    diffs.extend(_json_diff(stored[name], wanted, str(name)))
+                    have = stored[name] if name not in (fill or {}) else json.loads(json.dumps(fill[name](stored[name])))
+                    diffs.extend(_json_diff(have, wanted, str(name)))
             if diffs:
                 raise CheckpointError(f"{where} was written with different settings: {_listing(diffs)}")
 

@@ -372,8 +372,8 @@ class SStepConfig:
         inside every minibatch step, "auto" per epoch in the runner's programs of up to
         ``sharding.EPOCH_STATISTICS_MAX_SEEDS`` seeds per GPU and per step elsewhere. The same
         values up to the order of their sums, and the same weights. Per epoch a GMR step of one
-        seed per GPU launches a sixth fewer kernels; with many seeds per GPU the kept weights
-        cost more than that saves (benchmarks/RESULTS.md, twenty-second session).
+        seed per GPU launches fewer kernels; with many seeds per GPU the kept weights cost more
+        than that saves (benchmarks/RESULTS.md, twenty-second session).
     """
 
     lr: float = 1e-3

@@ -418,13 +418,24 @@ def _restore(cfg: config.Config, seeds, ckpt_dir: pathlib.Path, template, report
                     f"resume with at least {done} iterations")
             expect = {"config": config.to_dict(dataclasses.replace(cfg, iterations=planned)),
                       "seeds": list(seeds)}
-            state, saved = checkpoint.restore(ckpt_dir, template, step=step, expect=jsonable(expect))
+            state, saved = checkpoint.restore(ckpt_dir, template, step=step, expect=jsonable(expect),
+                                              fill={"config": _with_defaults})
         except checkpoint.CorruptCheckpointError as err:
             moved = _set_aside(ckpt_dir, step)
             report(f"checkpoint step {step} is corrupt ({err}); set aside as {moved.name}")
             continue
         return state, history_from_metadata(saved)
     return None, []
+
+
+def _with_defaults(stored: dict) -> dict:
+    """A checkpoint's configuration with the fields it predates set to their defaults (a
+    configuration that ``config.from_dict`` refuses is compared as it is, and its differences
+    named)."""
+    try:
+        return config.to_dict(config.from_dict(stored))
+    except (ValueError, TypeError):
+        return stored
 
 
 def history_metadata(history) -> dict:
@@ -437,7 +448,8 @@ def history_metadata(history) -> dict:
 def history_from_metadata(saved: dict) -> list[dict]:
     """``history_metadata``'s inverse: the iterations' metrics as numpy arrays of their own
     dtypes, so that a resumed run's history (and every mean of it) is the uninterrupted run's
-    bit for bit; checkpoints written before dtypes were recorded give numpy's defaults."""
+    bit for bit, except that non-finite values come back as NaN (``jsonable``); checkpoints
+    written before dtypes were recorded give numpy's defaults."""
     dtypes = saved.get("history_dtypes", {})
     return [{k: np.asarray(v, dtype=dtypes.get(k)) for k, v in h.items()} for h in saved["history"]]
 
@@ -820,19 +832,31 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
         try:
             return {key: futures[key].result() for key in configs}
         except Interrupted:
-            # every run stops after its iteration in flight: say where each one stands
+            # every run stops after its iteration in flight
             concurrent.futures.wait(futures.values())
-            raise Interrupted("; ".join(_where_stopped(f"{key[0]}/{key[1]}", futures[key]) for key in order)) \
-                from None
+            raise stopped_study_error({f"{key[0]}/{key[1]}": futures[key] for key in order}) from None
         except BaseException:
             scheduler.request_stop()  # the other runs end after their iteration in flight
             raise
 
 
-def _where_stopped(label: str, future: concurrent.futures.Future) -> str:
-    """One run's part of a stopped study's message: finished, stopped (where) or failed (why)."""
-    err = future.exception()
-    if err is None:
-        return f"{label} finished"
-    return f"{label} {err}" if isinstance(err, Interrupted) else f"{label} failed: {type(err).__name__}: {err}"
+def stopped_study_error(runs: dict) -> BaseException:
+    """What a study raises once its runs have ended after a stop request; ``runs``: {label:
+    finished future}. A run that failed (not stopped) is raised, so that its error is not taken
+    for an interruption, with where every run stands as a note; otherwise an
+    :class:`Interrupted` that says where each run stands."""
+    parts, failed = [], None
+    for label, future in runs.items():
+        err = future.exception()
+        if err is None:
+            parts.append(f"{label} finished")
+        elif isinstance(err, Interrupted):
+            parts.append(f"{label} {err}")
+        else:
+            parts.append(f"{label} failed: {type(err).__name__}: {err}")
+            failed = err if failed is None else failed
+    if failed is not None:
+        failed.add_note("; ".join(parts))
+        return failed
+    return Interrupted("; ".join(parts))
 

@@ -165,9 +165,9 @@ nineteenth to twenty-first sessions; 33–63 seeds and float64 beyond one seed n
 EPOCH_STATISTICS_MAX_SEEDS = 8
 """The most seeds per GPU whose programs evaluate the packed S-step's statistics per epoch
 (``SStepConfig.statistics`` "auto"): measured per Adam step of GMR A,B on an H100 in float32,
-faster per epoch at 1 and 8 seeds, slower at 32 and 256 (the kept weights are written every
+faster per epoch at 1 and 8 seeds, slower at 16, 32 and 256 (the kept weights are written every
 step, the batched evaluation grows with the seeds; benchmarks/RESULTS.md, twenty-second session;
-9–31 seeds not measured)."""
+9–15 seeds not measured)."""
 
 _BLOCK_SEEDS = contextvars.ContextVar("block_seeds", default=None)
 

@@ -116,15 +116,24 @@ def default_impl() -> str:
     return "reference" if sharding.target_platform() == "cpu" else "packed"
 
 
-def default_statistics() -> str:
-    """``SStepConfig.statistics`` "auto": "epoch" for a program traced under
-    ``sharding.seed_block`` with up to ``sharding.EPOCH_STATISTICS_MAX_SEEDS`` seeds per GPU,
-    where a minibatch step is bound by its number of kernels and the statistics' own kernels are
-    a third of them; "step" elsewhere (on a CPU, and for many seeds side by side, where the kept
-    weights' traffic and the batched evaluation cost more than the statistics inside the step)."""
-    seeds = sharding.block_seeds()
-    on = seeds is not None and sharding.epoch_statistics_for(seeds, sharding.target_platform())
+def resolve_statistics(value: str, seeds_per_device: int | None, platform: str) -> str:
+    """``SStepConfig.statistics`` as the packed form applies it to a program of
+    ``seeds_per_device`` seeds per device (None: traced outside ``sharding.seed_block``) on
+    ``platform``: "epoch" or "step" as given; "auto" is "epoch" with up to
+    ``sharding.EPOCH_STATISTICS_MAX_SEEDS`` seeds per GPU, where a minibatch step is bound by
+    its number of kernels and the statistics' own kernels take a third of its time, and "step"
+    elsewhere (on a CPU, and for many seeds side by side, where the kept weights' traffic and
+    the batched evaluation cost more than the statistics inside the step)."""
+    if value != "auto":
+        return value
+    on = seeds_per_device is not None and sharding.epoch_statistics_for(seeds_per_device, platform)
     return "epoch" if on else "step"
+
+
+def default_statistics() -> str:
+    """``resolve_statistics("auto", …)`` for the program being traced (``sharding.block_seeds``,
+    ``sharding.target_platform``)."""
+    return resolve_statistics("auto", sharding.block_seeds(), sharding.target_platform())
 
 
 def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStepConfig = SStepConfig(),
@@ -286,7 +295,7 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         return stats
 
     zeros = jnp.zeros_like(w0)
-    if (default_statistics() if cfg.statistics == "auto" else cfg.statistics) == "step":
+    if resolve_statistics(cfg.statistics, sharding.block_seeds(), sharding.target_platform()) == "step":
         def step(carry, inputs):
             w, mu, nu, l2 = carry
             w_new, mu, nu, value, aux = update(w, mu, nu, *inputs)

@@ -2,7 +2,8 @@
 its build.
 
 The kernels themselves run on a GPU only, where the benchmark checks each against a
-double-precision host computation before timing it (and stops on a failed check). Here: a model
+double-precision host computation before timing it (and exits with an error after a failed
+check). Here: a model
 of ``mma.m16n8k8``'s fragments (PTX's layout, one 16-row tile, 32 lanes) shows that storing W's
 rows in an accumulator fragment's order lets a product's output fragments serve as the next
 product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimate;

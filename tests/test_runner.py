@@ -1,8 +1,10 @@
 """The library's resumable training loop (gmr_jax.runner): an interrupted, resumed and extended
 run equals an uninterrupted one, progress reaches the callback, other settings are refused."""
 
+import concurrent.futures
 import dataclasses
 import json
+import shutil
 import sys
 import threading
 import time
@@ -112,6 +114,44 @@ def test_history_keeps_its_dtypes_through_a_checkpoint():
     # a checkpoint written before the dtypes were kept restores with numpy's defaults
     del saved["history_dtypes"]
     assert runner.history_from_metadata(saved)[0]["sample_cost"].dtype == np.float64
+
+
+def test_a_checkpoint_from_before_a_configuration_field_existed_resumes(whole, scheduler, tmp_path):
+    """A checkpoint written before a configuration field was added (here ``sstep.statistics``,
+    removed from its stored configuration) holds that field's default: the run resumes, with
+    the same history; a field the checkpoint holds with another value is still refused."""
+    cfg, root, result, _ = whole
+    shutil.copytree(root / "whole", tmp_path / "old")
+    for meta in (tmp_path / "old" / "checkpoints").glob("*/meta/metadata"):
+        stored = json.loads(meta.read_text())
+        del stored["metadata"]["config"]["sstep"]["statistics"]
+        meta.write_text(json.dumps(stored))
+    resumed = runner.run(cfg, SEEDS, tmp_path / "old", resume=True, scheduler=scheduler)
+    for name, value in result["history"].items():
+        np.testing.assert_array_equal(resumed["history"][name], value, err_msg=name)
+    with pytest.raises(checkpoint.CheckpointError, match="config.sstep.statistics: checkpoint 'auto', expected 'step'"):
+        runner.run(dataclasses.replace(cfg, sstep=dataclasses.replace(cfg.sstep, statistics="step")), SEEDS,
+                   tmp_path / "old", resume=True, scheduler=scheduler)
+
+
+def test_a_failed_run_is_not_reported_as_an_interruption():
+    """A study stopped on request whose runs ended in different ways: a run's failure is raised
+    (with where every run stands as a note), never taken for an interruption; otherwise one
+    Interrupted says where each run stands."""
+    def ended(err=None):
+        f = concurrent.futures.Future()
+        f.set_result(None) if err is None else f.set_exception(err)
+        return f
+
+    stopped = runner.Interrupted("stopped after iteration 2 of 10; its checkpoint is in x")
+    failed = runner.TrainingError("iteration 3: non-finite values")
+    err = runner.stopped_study_error({"A/gmr": ended(stopped), "A/mdgps": ended(failed), "AB/gmr": ended()})
+    assert err is failed
+    assert err.__notes__ == ["A/gmr stopped after iteration 2 of 10; its checkpoint is in x; A/mdgps failed: "
+                             "TrainingError: iteration 3: non-finite values; AB/gmr finished"]
+    err = runner.stopped_study_error({"A/gmr": ended(stopped), "AB/gmr": ended()})
+    assert isinstance(err, runner.Interrupted)
+    assert str(err) == "A/gmr stopped after iteration 2 of 10; its checkpoint is in x; AB/gmr finished"
 
 
 def test_other_settings_and_fewer_iterations_are_refused(whole, scheduler):
