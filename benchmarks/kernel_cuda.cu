@@ -115,7 +115,9 @@ __device__ __forceinline__ void mma_tf32(float (&d)[4], const uint32_t (&a)[4], 
       : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
 }
 
-template <int PASSES, int NSPLIT>
+// ACCS = 3 (with PASSES = 3): each pass into an accumulator of its own, added at the end, so that
+// an accumulator's chain of dependent mma.sync is 8 long instead of 24.
+template <int PASSES, int NSPLIT, int ACCS>
 __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict__ h0, const float* __restrict__ w,
                                                          float* __restrict__ out, int steps, int chain) {
   constexpr int NT = 8 / NSPLIT;  // n-tiles per warp
@@ -144,12 +146,15 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
     frag[kk] = make_float4(h0[r0 * WIDTH + 8 * kk + 2 * t], h0[(r0 + 8) * WIDTH + 8 * kk + 2 * t],
                            h0[r0 * WIDTH + 8 * kk + 2 * t + 1], h0[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1]);
   __syncthreads();
-  float acc[NT][4];
+  static_assert(ACCS == 1 || (ACCS == 3 && PASSES == 3), "one accumulator, or one per pass of three");
+  float acc[ACCS][NT][4];
   int buf = 0;
   for (int s = 0; s < steps; ++s) {
     for (int c = 0; c < chain; ++c) {
 #pragma unroll
-      for (int j = 0; j < NT; ++j) acc[j][0] = acc[j][1] = acc[j][2] = acc[j][3] = 0.f;
+      for (int a = 0; a < ACCS; ++a)
+#pragma unroll
+        for (int j = 0; j < NT; ++j) acc[a][j][0] = acc[a][j][1] = acc[a][j][2] = acc[a][j][3] = 0.f;
 #pragma unroll
       for (int kk = 0; kk < 8; ++kk) {
         const float4 f = frag[kk];
@@ -167,21 +172,27 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
           const uint2 bh = Bhi[kk][nn][lane];
           if (PASSES == 3) {
             const uint2 bl = Blo[kk][nn][lane];
-            mma_tf32(acc[j], alo, bh.x, bh.y);
-            mma_tf32(acc[j], ahi, bl.x, bl.y);
+            mma_tf32(acc[0][j], alo, bh.x, bh.y);
+            mma_tf32(acc[ACCS == 3 ? 1 : 0][j], ahi, bl.x, bl.y);
           }
-          mma_tf32(acc[j], ahi, bh.x, bh.y);
+          mma_tf32(acc[ACCS == 3 ? 2 : 0][j], ahi, bh.x, bh.y);
         }
+      }
+      if (ACCS == 3) {
+#pragma unroll
+        for (int j = 0; j < NT; ++j)
+#pragma unroll
+          for (int e = 0; e < 4; ++e) acc[0][j][e] = (acc[0][j][e] + acc[1 % ACCS][j][e]) + acc[2 % ACCS][j][e];
       }
       if (NSPLIT == 1) {
 #pragma unroll
         for (int j = 0; j < NT; ++j)
-          frag[j] = make_float4(leaky(acc[j][0]), leaky(acc[j][2]), leaky(acc[j][1]), leaky(acc[j][3]));
+          frag[j] = make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
       } else {
 #pragma unroll
         for (int j = 0; j < NT; ++j)
           X[buf][mtile][part * NT + j][lane] =
-              make_float4(leaky(acc[j][0]), leaky(acc[j][2]), leaky(acc[j][1]), leaky(acc[j][3]));
+              make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
         asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(32 * NSPLIT) : "memory");
 #pragma unroll
         for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
@@ -277,28 +288,59 @@ __global__ void block_adam(AdamArgs a) {
 // ----------------------------------------------------------------------------------------------
 // host
 
-static std::vector<double> reference_chain(const std::vector<float>& h0, const std::vector<float>& w, int chain) {
-  std::vector<double> h(h0.begin(), h0.end()), next(h.size());
+// The exact chain h_{c+1} = leaky(h_c W) in double, and an elementwise bound E on how far a kernel
+// whose every product term carries a relative error of at most gamma (operand rounding and the
+// accumulation's, as a forward-error bound |fl(sum a b) - sum a b| <= gamma sum |a||b|) can lie
+// from it. To first order, with leaky 1-Lipschitz and its own rounding (u32 |h|):
+//   E_{c+1} = E_c |W| + gamma (|h_c| + E_c) |W| + u32 |h_{c+1}|,  E_0 = 0 (h_0 is float32).
+struct Reference {
+  std::vector<double> h, bound;
+};
+
+static Reference reference_chain(const std::vector<float>& h0, const std::vector<float>& w, int chain, double gamma) {
+  const double u32 = std::ldexp(1.0, -24);
+  std::vector<double> h(h0.begin(), h0.end()), e(h.size(), 0.0), next(h.size()), next_e(h.size());
   for (int c = 0; c < chain; ++c) {
     for (int r = 0; r < ROWS; ++r)
       for (int o = 0; o < WIDTH; ++o) {
-        double s = 0.0;
-        for (int k = 0; k < WIDTH; ++k) s += h[r * WIDTH + k] * double(w[k * WIDTH + o]);
+        double s = 0.0, abs_s = 0.0, err = 0.0;
+        for (int k = 0; k < WIDTH; ++k) {
+          const double wk = double(w[k * WIDTH + o]);
+          s += h[r * WIDTH + k] * wk;
+          abs_s += std::fabs(h[r * WIDTH + k]) * std::fabs(wk);
+          err += e[r * WIDTH + k] * std::fabs(wk);
+        }
         next[r * WIDTH + o] = s > 0 ? s : SLOPE * s;
+        next_e[r * WIDTH + o] = err + gamma * (abs_s + err) + u32 * std::fabs(next[r * WIDTH + o]);
       }
     h.swap(next);
+    e.swap(next_e);
   }
-  return h;
+  return {h, e};
 }
 
-// max |a - b| / max |b|
-static double relative_error(const std::vector<float>& a, const std::vector<double>& b) {
-  double err = 0.0, scale = 0.0;
-  for (size_t i = 0; i < b.size(); ++i) {
-    err = std::max(err, std::fabs(double(a[i]) - b[i]));
-    scale = std::max(scale, std::fabs(b[i]));
+// max |a - ref| / max |ref|, and max over entries of |a - ref| / bound
+static void chain_errors(const std::vector<float>& a, const Reference& ref, double* rel, double* over_bound) {
+  double err = 0.0, scale = 0.0, ratio = 0.0;
+  for (size_t i = 0; i < ref.h.size(); ++i) {
+    const double d = std::fabs(double(a[i]) - ref.h[i]);
+    err = std::max(err, d);
+    scale = std::max(scale, std::fabs(ref.h[i]));
+    ratio = std::max(ratio, ref.bound[i] > 0 ? d / ref.bound[i] : (d > 0 ? INFINITY : 0.0));
   }
-  return err / scale;
+  *rel = err / scale;
+  *over_bound = ratio;
+}
+
+// gamma of each precision (above), K = WIDTH terms, u = 2^-24 (float32), t = 2^-11 (TF32, round to
+// nearest): "ieee" K u (float32 FMAs); "tf32" 2t + t^2 per operand pair and K additions of the
+// accumulator at 2u each (the tensor cores' accumulation is not specified to round to nearest);
+// "tf32x3" the dropped lo*lo term and the lo parts' own rounding, 3 t^2 (1 + t)^2, and 3K additions.
+static double product_gamma(const char* precision) {
+  const double u = std::ldexp(1.0, -24), t = std::ldexp(1.0, -11), K = WIDTH;
+  if (std::strcmp(precision, "ieee") == 0) return K * u / (1 - K * u);
+  if (std::strcmp(precision, "tf32") == 0) return 2 * t + t * t + K * 2 * u;
+  return 3 * t * t * (1 + t) * (1 + t) + 3 * K * 2 * u;
 }
 
 typedef void (*ChainKernel)(const float*, const float*, float*, int, int);
@@ -307,6 +349,7 @@ struct ChainVariant {
   const char* kernel;
   const char* precision;
   int nsplit;
+  int accumulators;
   int threads;
   ChainKernel fn;
 };
@@ -377,27 +420,32 @@ int main(int argc, char** argv) {
   CHECK(cudaMemcpy(d_w, w.data(), w.size() * sizeof(float), cudaMemcpyHostToDevice));
 
   const ChainVariant variants[] = {
-      {"chain_fma", "ieee", 0, 256, chain_fma},
-      {"chain_mma", "tf32", 1, 64, chain_mma<1, 1>},
-      {"chain_mma", "tf32x3", 1, 64, chain_mma<3, 1>},
-      {"chain_mma", "tf32x3", 2, 128, chain_mma<3, 2>},
-      {"chain_mma", "tf32x3", 4, 256, chain_mma<3, 4>},
+      {"chain_fma", "ieee", 0, 1, 256, chain_fma},
+      {"chain_mma", "tf32", 1, 1, 64, chain_mma<1, 1, 1>},
+      {"chain_mma", "tf32x3", 1, 1, 64, chain_mma<3, 1, 1>},
+      {"chain_mma", "tf32x3", 1, 3, 64, chain_mma<3, 1, 3>},
+      {"chain_mma", "tf32x3", 2, 1, 128, chain_mma<3, 2, 1>},
+      {"chain_mma", "tf32x3", 2, 3, 128, chain_mma<3, 2, 3>},
+      {"chain_mma", "tf32x3", 4, 1, 256, chain_mma<3, 4, 1>},
   };
   const int check_chain = 4;
-  const std::vector<double> ref = reference_chain(h0, w, check_chain);
   std::vector<float> got(h0.size());
   for (const ChainVariant& v : variants) {
+    const Reference ref = reference_chain(h0, w, check_chain, product_gamma(v.precision));
     v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, 1, check_chain);
     CHECK(cudaGetLastError());
     CHECK(cudaMemcpy(got.data(), d_out, got.size() * sizeof(float), cudaMemcpyDeviceToHost));
-    printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"products\": %d, \"max_rel_err\": %.3e}\n",
-           v.kernel, v.precision, v.nsplit, check_chain, relative_error(got, ref));
+    double rel, over_bound;
+    chain_errors(got, ref, &rel, &over_bound);
+    printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"products\": %d, "
+           "\"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+           v.kernel, v.precision, v.nsplit, v.accumulators, check_chain, rel, over_bound);
     for (int chain : chains) {
       const float ms = time_launches([&] { v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, steps, chain); }, repeats);
       CHECK(cudaGetLastError());
-      printf("{\"kernel\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"threads\": %d, \"chain\": %d, "
-             "\"steps\": %d, \"us_per_iteration\": %.4f}\n",
-             v.kernel, v.precision, v.nsplit, v.threads, chain, steps, 1e3 * ms / steps);
+      printf("{\"kernel\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"threads\": %d, "
+             "\"chain\": %d, \"steps\": %d, \"us_per_iteration\": %.4f}\n",
+             v.kernel, v.precision, v.nsplit, v.accumulators, v.threads, chain, steps, 1e3 * ms / steps);
     }
   }
 
@@ -450,18 +498,23 @@ int main(int argc, char** argv) {
     CHECK(cudaLaunchCooperativeKernel((void*)grid_adam, grid, threads, args, 0, 0));
   };
   std::vector<float> got_w(adam_n);
-  reset();
-  launch_grid(1, check_steps);
-  CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
-  printf("{\"check\": \"grid_adam\", \"steps\": %d, \"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
-         check_steps, update_error(got_w), max_abs_w, max_update);
-  reset();
-  a.steps = check_steps;
-  block_adam<<<1, 1024>>>(a);
-  CHECK(cudaGetLastError());
-  CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
-  printf("{\"check\": \"block_adam\", \"steps\": %d, \"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
-         check_steps, update_error(got_w), max_abs_w, max_update);
+  for (int bt : {256, 1024}) {
+    for (const char* kernel : {"grid_adam", "block_adam"}) {
+      reset();
+      if (kernel[0] == 'g') {
+        threads = bt;
+        launch_grid(1, check_steps);
+      } else {
+        a.steps = check_steps;
+        block_adam<<<1, bt>>>(a);
+        CHECK(cudaGetLastError());
+      }
+      CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
+      printf("{\"check\": \"%s\", \"threads\": %d, \"steps\": %d, \"max_err_over_update\": %.3e, "
+             "\"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
+             kernel, bt, check_steps, update_error(got_w), max_abs_w, max_update);
+    }
+  }
 
   for (int mode = 0; mode < 2; ++mode) {
     for (int bt : {256, 1024}) {

@@ -69,19 +69,19 @@ def test_output_fragments_are_the_next_products_input_fragments():
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12 * np.max(np.abs(ref)))
 
 
-def _lines(chain_us, checks_err=1e-6):
+def _lines(chain_us, over_bound=1e-2):
     """Executable output: a device line, checks, chain timings (µs = a + b·chain) and Adam."""
     lines = [{"device": "GPU", "multiprocessors": 132, "sm": "9.0"}]
-    for precision, nsplit, threads, err in (("ieee", 0, 256, 1e-7), ("tf32", 1, 64, 5e-4),
-                                            ("tf32x3", 2, 128, checks_err)):
+    for precision, nsplit, threads, ratio in (("ieee", 0, 256, 1e-3), ("tf32", 1, 64, 1e-2),
+                                              ("tf32x3", 2, 128, over_bound)):
         kernel = "chain_fma" if precision == "ieee" else "chain_mma"
-        lines.append({"check": kernel, "precision": precision, "nsplit": nsplit, "products": 4,
-                      "max_rel_err": err})
+        lines.append({"check": kernel, "precision": precision, "nsplit": nsplit, "accumulators": 1,
+                      "products": 4, "max_rel_err": 1e-6, "max_err_over_bound": ratio})
         a, b = chain_us[precision]
-        lines += [{"kernel": kernel, "precision": precision, "nsplit": nsplit, "threads": threads,
-                   "chain": c, "steps": 10, "us_per_iteration": a + b * c} for c in (1, 8, 32)]
-    lines.append({"check": "grid_adam", "steps": 5, "max_err_over_update": 1e-5, "max_abs_w": 0.4,
-                  "max_update": 5e-3})
+        lines += [{"kernel": kernel, "precision": precision, "nsplit": nsplit, "accumulators": 1,
+                   "threads": threads, "chain": c, "steps": 10, "us_per_iteration": a + b * c} for c in (1, 8, 32)]
+    lines.append({"check": "grid_adam", "threads": 1024, "steps": 5, "max_err_over_update": 1e-5,
+                  "max_abs_w": 0.4, "max_update": 5e-3})
     lines += [{"kernel": "grid_adam", "mode": "update", "threads": th, "us_per_step": us}
               for th, us in ((256, 11.0), (1024, 7.0))]
     lines.append({"kernel": "grid_adam", "mode": "sync", "threads": 256, "us_per_step": 2.2})
@@ -93,26 +93,24 @@ def test_summary_fits_checks_and_estimate():
     s = kernel_cuda.summarize(_lines(chain_us), products=32)
     assert not s["failed_checks"] and all(c["ok"] for c in s["checks"])
     fits = s["chain_fits"]
-    assert fits["chain_mma_tf32x3_split2_128threads"]["us_per_product"] == pytest.approx(0.7)
-    assert fits["chain_fma_ieee_split0_256threads"]["us_per_iteration_besides"] == pytest.approx(0.05)
+    assert fits["chain_mma_tf32x3_split2_acc1_128threads"]["us_per_product"] == pytest.approx(0.7)
+    assert fits["chain_fma_ieee_split0_acc1_256threads"]["us_per_iteration_besides"] == pytest.approx(0.05)
     est = s["floor_estimate"]
     # the fastest float32-accurate product (tf32x3 here; one TF32 pass is not float32-accurate)
     # and the fastest grid update
-    assert est["product_kernel"] == "chain_mma_tf32x3_split2_128threads"
+    assert est["product_kernel"] == "chain_mma_tf32x3_split2_acc1_128threads"
     assert est["adam_kernel"] == "grid_adam_update_1024threads"
     assert est["us_per_step"] == pytest.approx(32 * 0.7 + 7.0)
-    # a wrong fragment shows as an O(1) error, far above every bound
-    bad = kernel_cuda.summarize(_lines(chain_us, checks_err=0.5), products=32)
+    # an entry beyond the chain's forward-error bound fails the check
+    bad = kernel_cuda.summarize(_lines(chain_us, over_bound=1.5), products=32)
     assert [c["precision"] for c in bad["failed_checks"]] == ["tf32x3"]
 
 
-def test_bounds_separate_round_off_from_a_wrong_kernel():
-    for precision in kernel_cuda.UNIT_ROUNDOFF:
-        assert kernel_cuda.chain_bound(precision, 4) < 0.2
-    # TF32's bound sits far above float32's and the three-pass split's in between
-    assert kernel_cuda.chain_bound("ieee", 4) < kernel_cuda.chain_bound("tf32x3", 4) < kernel_cuda.chain_bound("tf32", 4)
-    # Adam's float32 update after 5 steps, weights of 0.4, updates of 5e-3: a few times 1e-4
-    assert 1e-5 < kernel_cuda.adam_bound(5, 0.4, 5e-3) < 1e-3
+def test_adam_bound_and_line_fit():
+    # Adam's float32 update after 5 steps, weights of 0.4, updates of 5e-3: a few times 1e-4,
+    # dominated by the bias correction's cancellation at the first step
+    assert 1e-4 < kernel_cuda.adam_bound(5, 0.4, 5e-3) < 1e-3
+    assert kernel_cuda.adam_bound(5, 0.4, 5e-3, b2=0.9) < kernel_cuda.adam_bound(5, 0.4, 5e-3)
     with pytest.raises(ValueError, match="two distinct chain lengths"):
         kernel_cuda.line_fit([(8, 1.0), (8, 2.0)])
 
