@@ -91,6 +91,11 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
                    help="programs (iterations, evaluations) compiled at once (default: %(default)s). XLA spreads "
                         "one compilation over the cores, so more at once mostly slow each other")
+    p.add_argument("--iteration-programs", default="auto", choices=runner.ITERATION_PROGRAMS,
+                   help="compile each run's iteration as one program (whole) or as the programs of its "
+                        "parts, which compile in parallel, each as soon as it is traced (parts); default "
+                        "%(default)s: parts for the policy runs on a GPU (runner.ITERATION_PARTS; "
+                        "benchmarks/RESULTS.md, twenty-third session); the choice is written to config.json")
     p.add_argument("--autotune", action="store_true",
                    help="let XLA time kernel variants on the GPU while compiling. Off by default: "
                         "runs that compile while others train make those timings slow and noisy, "
@@ -374,6 +379,10 @@ def run_study(args, t_start: float) -> int:
         "sstep_statistics": {f"{s}/{a}": sstep.resolve_statistics(
             c.sstep.statistics, sharding.seeds_per_device(args.seeds, len(used)),
             args.platforms.get((s, a), used[0].platform)) for (s, a), c in args.configs.items()},
+        # per run: its iteration compiled as one program or in parts (--iteration-programs)
+        "iteration_programs": {f"{s}/{a}": runner.iteration_programs_for(
+            args.iteration_programs, c, args.platforms.get((s, a), used[0].platform))
+            for (s, a), c in args.configs.items()},
         "cpu_runs": on_cpu,
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         "host_cpu": host_cpu(),
@@ -383,7 +392,7 @@ def run_study(args, t_start: float) -> int:
     for (scenario, algorithm), cfg in args.configs.items():
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
-    with runner.Scheduler(args.compile_jobs, args.devices) as scheduler:
+    with runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs) as scheduler:
         _stop_on_signals(scheduler)
         plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()

@@ -29,6 +29,7 @@ except the iteration counter and the policy parameters (shared by the conditions
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -294,26 +295,47 @@ def linearize_global_policy(cfg: Config, params, pol_prior: PolicyPrior, X: Arra
     return jax.vmap(lqr.policy_from_covariance)(pol_K, pol_k, pol_S), pol_prior
 
 
+def catch_up_stage(cfg: Config, state: TrainState, samples: Trajectories, first: Array,
+                   key: Array) -> tuple[policies.PolicyParams | None, Array]:
+    """MDGPS's first iteration fits the policy to the initial controllers before it is
+    linearised (the toolbox's catch-up S-step, §0.4); later iterations keep it.
+
+    Returns: (PolicyParams, or None for trajectory optimisation; [] bool: they are finite).
+    """
+    if state.policy is None:
+        return None, jnp.asarray(True)
+
+    def catch_up(params):
+        new, _, ok = fit_policy(cfg, params, sstep_data(state.traj, samples.X), key)
+        return new, ok
+
+    return jax.lax.cond(first, catch_up, lambda p: (p, jnp.asarray(True)), state.policy.params)
+
+
+def linearization_stage(cfg: Config, state: TrainState, params, samples: Trajectories,
+                        key: Array) -> tuple[PolicyState | None, LinearGaussianPolicy]:
+    """The KL anchor of the C-step: the previous local controllers (trajectory optimisation), or
+    the global policy with ``params`` linearised around the samples (MDGPS).
+
+    Returns: (PolicyState with ``params`` or None, anchor LinearGaussianPolicy [M, T, ...]).
+    """
+    if state.policy is None:
+        return None, state.traj
+    linearize_fn = _stage(cfg, "policy_linearization", linearize_global_policy)
+    anchor, prior = linearize_fn(cfg, params, state.policy.prior, samples.X, key)
+    return PolicyState(params=params, prior=prior), anchor
+
+
 def anchor_stage(cfg: Config, state: TrainState, samples: Trajectories, first: Array,
                  key_catch_up: Array, key_lin: Array) -> tuple[PolicyState | None, LinearGaussianPolicy, Array]:
-    """The KL anchor of the C-step: the previous local controllers (trajectory optimisation), or
-    the global policy linearised around the samples (MDGPS). In MDGPS's first iteration the
-    policy first catches up with the initial controllers (toolbox §0.4).
+    """``catch_up_stage`` then ``linearization_stage``.
 
     Returns: (PolicyState or None, anchor LinearGaussianPolicy [M, T, ...], [] bool: the
     catch-up S-step's parameters are finite).
     """
-    if state.policy is None:
-        return None, state.traj, jnp.asarray(True)
-
-    def catch_up(params):
-        new, _, ok = fit_policy(cfg, params, sstep_data(state.traj, samples.X), key_catch_up)
-        return new, ok
-
-    params, ok = jax.lax.cond(first, catch_up, lambda p: (p, jnp.asarray(True)), state.policy.params)
-    linearize_fn = _stage(cfg, "policy_linearization", linearize_global_policy)
-    anchor, prior = linearize_fn(cfg, params, state.policy.prior, samples.X, key_lin)
-    return PolicyState(params=params, prior=prior), anchor, ok
+    params, ok = catch_up_stage(cfg, state, samples, first, key_catch_up)
+    policy, anchor = linearization_stage(cfg, state, params, samples, key_lin)
+    return policy, anchor, ok
 
 
 def c_step(cfg: Config, dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolicy,
@@ -414,38 +436,122 @@ def stage_keys(key: Array) -> tuple[Array, ...]:
     return tuple(jax.random.split(key, 5))
 
 
-def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
-           first: Array) -> tuple[TrainState, dict]:
-    """Everything of an iteration after its rollouts: cost expansion, dynamics fit, KL anchor,
-    step size, C-step, S-step (call under ``MATMUL_PRECISION``). Returns (new state, metrics
-    without the learning curve's)."""
-    _, k_dyn, k_lin, k_catch_up, k_sstep = stage_keys(key)
-    cost, sample_costs = _stage(cfg, "cost", cost_stage)(cfg, samples)
-    dyn_prior, dyn = _stage(cfg, "dynamics", dynamics_stage)(cfg, state.dyn_prior, samples, k_dyn)
-    policy, anchor, catch_up_ok = anchor_stage(cfg, state, samples, first, k_catch_up, k_lin)
-    model = LocalModel(anchor=anchor, dyn=dyn, cost=cost, sample_cost=jnp.mean(sample_costs, axis=-1))
+# ---------------------------------------------------------------------------------------------
+# The iteration in parts
+#
+# An iteration is a chain of parts. A part maps (cfg, carry, first) to new entries of the carry, a
+# dict that starts as {"state": TrainState, "key": the iteration's key} (``update``: also
+# "samples") and ends with "new_state", "metrics" and "curve". ``iteration`` traces the chain as
+# one program; the runner may compile groups of consecutive parts as programs of their own
+# (``part_program``), which XLA compiles in parallel.
+
+
+def _rollouts_part(cfg: Config, c: dict, first: Array) -> dict:
+    """This iteration's samples (``sample_stage``)."""
+    x0 = tasks.initial_states(cfg.task, c["state"].eta.dtype)
+    return {"samples": sample_stage(cfg, c["state"], x0, stage_keys(c["key"])[0], first)}
+
+
+def _model_part(cfg: Config, c: dict, first: Array) -> dict:
+    """Cost expansion and dynamics fit of the samples."""
+    cost, sample_costs = _stage(cfg, "cost", cost_stage)(cfg, c["samples"])
+    dyn_prior, dyn = _stage(cfg, "dynamics", dynamics_stage)(cfg, c["state"].dyn_prior, c["samples"],
+                                                             stage_keys(c["key"])[1])
+    return {"cost": cost, "sample_costs": sample_costs, "dyn_prior": dyn_prior, "dyn": dyn}
+
+
+def _catch_up_part(cfg: Config, c: dict, first: Array) -> dict:
+    """The first iteration's catch-up S-step (``catch_up_stage``)."""
+    params, ok = catch_up_stage(cfg, c["state"], c["samples"], first, stage_keys(c["key"])[3])
+    return {"params": params, "catch_up_ok": ok}
+
+
+def _cstep_part(cfg: Config, c: dict, first: Array) -> dict:
+    """The KL anchor (policy linearisation), the step size and the C-step."""
+    state = c["state"]
+    policy, anchor = linearization_stage(cfg, state, c["params"], c["samples"], stage_keys(c["key"])[2])
+    model = LocalModel(anchor=anchor, dyn=c["dyn"], cost=c["cost"], sample_cost=jnp.mean(c["sample_costs"], axis=-1))
     step_mult, predicted, actual = _stage(cfg, "step_size", step_size.update)(
         cfg.step, state.step_mult, first, state.prev, state.traj, model)
     traj, marginals, eta, kl, epsilon, info = _stage(cfg, "cstep", c_step)(
-        cfg, dyn, cost, anchor, state.eta, step_mult)
-    policy, sstep_loss, sstep_ok = s_step(cfg, policy, traj, samples, marginals, k_sstep)
+        cfg, c["dyn"], c["cost"], anchor, state.eta, step_mult)
+    return {"policy": policy, "model": model, "step_mult": step_mult, "predicted": predicted, "actual": actual,
+            "traj": traj, "marginals": marginals, "eta": eta, "kl": kl, "epsilon": epsilon, "info": info}
 
-    ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & catch_up_ok & sstep_ok
+
+def _sstep_part(cfg: Config, c: dict, first: Array) -> dict:
+    """The S-step; the new state and the iteration's metrics (without the learning curve's)."""
+    state, samples, traj, info = c["state"], c["samples"], c["traj"], c["info"]
+    policy, sstep_loss, sstep_ok = s_step(cfg, c["policy"], traj, samples, c["marginals"], stage_keys(c["key"])[4])
+    ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & c["catch_up_ok"] & sstep_ok
+    model = c["model"]
     metrics = {
-        "sample_cost": model.sample_cost, "sample_costs": sample_costs, "kl": kl,
-        "epsilon": epsilon, "eta": eta, "step_mult": step_mult,
-        "predicted_improvement": predicted, "actual_improvement": actual,
+        "sample_cost": model.sample_cost, "sample_costs": c["sample_costs"], "kl": c["kl"],
+        "epsilon": c["epsilon"], "eta": c["eta"], "step_mult": c["step_mult"],
+        "predicted_improvement": c["predicted"], "actual_improvement": c["actual"],
         "eta_iterations": info.iterations, "eta_converged": info.converged,
         "sample_final_x": samples.X[:, :, -1], "ok": ok}
     if policy is not None:
         metrics["sstep_loss"] = jnp.broadcast_to(sstep_loss, ok.shape)
-    new_state = TrainState(iteration=state.iteration + 1, traj=traj, eta=eta, step_mult=step_mult,
-                           dyn_prior=dyn_prior, prev=model, policy=policy)
-    return new_state, metrics
+    new_state = TrainState(iteration=state.iteration + 1, traj=traj, eta=c["eta"], step_mult=c["step_mult"],
+                           dyn_prior=c["dyn_prior"], prev=model, policy=policy)
+    return {"new_state": new_state, "metrics": metrics}
+
+
+def _curve_part(cfg: Config, c: dict, first: Array) -> dict:
+    """The learning curve of the new controllers and policy."""
+    new_state = c["new_state"]
+    x0 = tasks.initial_states(cfg.task, new_state.eta.dtype)
+    return {"curve": learning_curve(cfg, new_state.traj, new_state.policy, x0)}
+
+
+ITERATION_PARTS = {"rollouts": _rollouts_part, "model": _model_part, "catch_up": _catch_up_part,
+                   "cstep": _cstep_part, "sstep": _sstep_part, "curve": _curve_part}
+"""The parts of an iteration in their order (``update``: all but the first and the last)."""
+
+_UPDATE_PARTS = tuple(ITERATION_PARTS)[1:-1]
+
+
+def run_parts(cfg: Config, names, carry: dict, first: Array) -> dict:
+    """The carry after the parts ``names`` (in their order), traced under ``MATMUL_PRECISION``."""
+    carry = dict(carry)
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+        for name in names:
+            new = ITERATION_PARTS[name](cfg, carry, first)
+            if set(new) & set(carry):
+                raise ValueError(f"iteration part {name!r} would replace {sorted(set(new) & set(carry))}")
+            carry.update(new)
+    return carry
+
+
+@functools.cache
+def part_program(names: tuple[str, ...]):
+    """``fn(cfg, carry, first) -> dict``: the entries that the parts ``names`` add to ``carry``
+    (not the ones it already holds, which a program would otherwise copy). One function per
+    group, so that jitted programs of it share their caches."""
+    def fn(cfg: Config, carry: dict, first: Array) -> dict:
+        out = run_parts(cfg, names, carry, first)
+        return {k: v for k, v in out.items() if k not in carry}
+    fn.__name__ = fn.__qualname__ = "iteration_part_" + "_".join(names)
+    return fn
+
+
+def iteration_result(carry: dict) -> tuple[TrainState, dict]:
+    """(new state, metrics) of a carry after every part of ``ITERATION_PARTS``."""
+    return carry["new_state"], {**carry["metrics"], **carry["curve"]}
+
+
+def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
+           first: Array) -> tuple[TrainState, dict]:
+    """Everything of an iteration after its rollouts and before its learning curve: cost
+    expansion, dynamics fit, KL anchor, step size, C-step, S-step. Returns (new state, metrics
+    without the learning curve's)."""
+    carry = run_parts(cfg, _UPDATE_PARTS, {"state": state, "samples": samples, "key": key}, first)
+    return carry["new_state"], carry["metrics"]
 
 
 def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = None):
-    """One GPS iteration (pure; jit with ``cfg`` static).
+    """One GPS iteration (pure; jit with ``cfg`` static): every part of ``ITERATION_PARTS``.
 
     Args:
       cfg: configuration (static).
@@ -460,13 +566,8 @@ def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = 
     All matrix products run at full float32 precision: the GPU's default (TF32 inputs, ~1e-3
     relative error) breaks the Cholesky factorisations of the dynamics fit and the LQR.
     """
-    with jax.default_matmul_precision(MATMUL_PRECISION):
-        first = state.iteration == 0 if first is None else jnp.asarray(first)
-        x0 = tasks.initial_states(cfg.task, state.eta.dtype)
-        samples = sample_stage(cfg, state, x0, stage_keys(key)[0], first)
-        new_state, metrics = update(cfg, state, samples, key, first)
-        metrics.update(learning_curve(cfg, new_state.traj, new_state.policy, x0))
-        return new_state, metrics
+    first = state.iteration == 0 if first is None else jnp.asarray(first)
+    return iteration_result(run_parts(cfg, tuple(ITERATION_PARTS), {"state": state, "key": key}, first))
 
 
 def iteration_keys(key: Array, iterations: int) -> tuple[Array, Array]:

@@ -169,6 +169,28 @@ def switch_interval(seconds: float | None):
         sys.setswitchinterval(before)
 
 
+ITERATION_PROGRAMS = ("auto", "whole", "parts")
+"""How the runner compiles a run's iteration (``Scheduler.iteration_programs``): "whole" as one
+program (``mdgps.iteration``); "parts" as the programs of ``ITERATION_PARTS``, each compiled
+(in a thread of its own) as soon as it is lowered, while the next one is traced; "auto":
+parts for the runs of a policy on a GPU, whole elsewhere."""
+
+ITERATION_PARTS = (("rollouts", "model"), ("catch_up",), ("cstep",), ("sstep", "curve"))
+"""The groups of ``mdgps.ITERATION_PARTS`` that the runner compiles as programs of their own
+(``iteration_programs`` "parts"): each of about the same compile time, the first iteration's
+catch-up S-step apart from the S-step (benchmarks/RESULTS.md, twenty-third session)."""
+
+
+def iteration_programs_for(choice: str, cfg: config.Config, platform: str) -> str:
+    """"whole" or "parts": ``choice`` (one of ``ITERATION_PROGRAMS``) for a run of ``cfg`` on
+    ``platform``."""
+    if choice not in ITERATION_PROGRAMS:
+        raise ValueError(f"iteration_programs: {choice!r} is not one of {', '.join(ITERATION_PROGRAMS)}")
+    if choice != "auto":
+        return choice
+    return "parts" if platform == "gpu" and policies.spec_for(cfg) is not None else "whole"
+
+
 class Scheduler:
     """Compile scheduling and the stop request of runs trained in one process.
 
@@ -191,11 +213,17 @@ class Scheduler:
         iteration in flight.
       switch_interval: Python's thread switch interval (seconds, ``sys.setswitchinterval``)
         while :func:`run_all` trains runs side by side; None leaves Python's (5 ms).
+      iteration_programs: one of ``ITERATION_PROGRAMS`` (the iteration as one program or in
+        parts; a run in parts takes one compile slot for all its parts).
     """
 
     def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 16,
-                 switch_interval: float | None = SWITCH_INTERVAL_S):
+                 switch_interval: float | None = SWITCH_INTERVAL_S, iteration_programs: str = "auto"):
         config.check_positive_int("compile_jobs", compile_jobs)
+        if iteration_programs not in ITERATION_PROGRAMS:
+            raise ValueError(f"iteration_programs: {iteration_programs!r} is not one of "
+                             f"{', '.join(ITERATION_PROGRAMS)}")
+        self.iteration_programs = iteration_programs
         self.compile_jobs = compile_jobs
         if switch_interval is not None:
             config.check_positive("switch_interval", switch_interval)
@@ -337,30 +365,107 @@ def _program_name(kind: str, cfg: config.Config, num_seeds: int, mesh) -> tuple:
 def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh):
     """The scheduler's compiled ``kind`` program ("step" or "robustness") for ``cfg`` and this
     seed batch on ``mesh``, or else the program traced and lowered (timed; compile it with
-    :func:`_compiled`). ``args``: the program's array arguments (or their shapes), seeds first.
-    It is traced and lowered with ``mesh``'s first device as JAX's default device, so that
-    choices made while tracing (``sharding.target_platform``) follow the run's platform, and
-    arguments given as shapes are placed there."""
+    :func:`_compiled`): a ``jax.stages.Lowered``, or for an iteration in parts
+    (``Scheduler.iteration_programs``) a :class:`_CompilingParts` whose parts already compile.
+    ``args``: the program's array arguments (or their shapes), seeds first. It is traced and
+    lowered with ``mesh``'s first device as JAX's default device, so that choices made while
+    tracing (``sharding.target_platform``) follow the run's platform, and arguments given as
+    shapes are placed there."""
     name = _program_name(kind, cfg, jax.tree_util.tree_leaves(args[0])[0].shape[0], mesh)
     if name in scheduler.programs:
         return scheduler.programs[name]
     prefix = _TIMER_PREFIX[kind]
     with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
+        if kind == "step" and iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh)) == "parts":
+            return _lowered_parts(cfg, args, timer, scheduler, mesh)
         with timer(f"{prefix}trace_s"):
             traced = _program(kind, mesh).trace(program_config(cfg), *args)
         with timer(f"{prefix}lower_s"):
             return traced.lower()
 
 
+def _compile_options(num_seeds: int, mesh) -> dict | None:
+    return sharding.compiler_options(sharding.seeds_per_device(num_seeds, mesh.size), _platform(mesh)) or None
+
+
+class _PartsStep:
+    """An iteration's compiled parts (``ITERATION_PARTS``), called as its whole program:
+    ``step(state, keys, first) -> (new state, metrics)``."""
+
+    def __init__(self, programs):
+        self.programs = tuple(programs)
+
+    def __call__(self, state, keys, first):
+        carry = {"state": state, "key": keys}
+        for program in self.programs:
+            carry.update(program(carry, first))
+        return mdgps.iteration_result(carry)
+
+
+class _CompilingParts:
+    """An iteration's parts being compiled (futures of their executables), each started as soon
+    as it was lowered, in one compile slot held from the first part's start to the end of the
+    last (:meth:`result`)."""
+
+    def __init__(self, scheduler: Scheduler, timer: Timer, options):
+        self._slots, self._timer, self._options = scheduler.compile_slots, timer, options
+        self._pool = concurrent.futures.ThreadPoolExecutor(len(ITERATION_PARTS), thread_name_prefix="gmr-jax-compile")
+        self._futures: list = []
+        self._t0 = None
+
+    def start(self, lowered) -> None:
+        if self._t0 is None:
+            self._slots.acquire()
+            self._t0 = time.perf_counter()
+        self._futures.append(self._pool.submit(lowered.compile, compiler_options=self._options))
+
+    def result(self) -> _PartsStep:
+        try:
+            return _PartsStep(f.result() for f in self._futures)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+        if self._t0 is not None:
+            self._timer["compile_s"] = self._timer.get("compile_s", 0.0) + time.perf_counter() - self._t0
+            self._t0 = None
+            self._slots.release()
+
+
+def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh) -> _CompilingParts:
+    """The iteration's parts traced and lowered one after the other (``trace_s``, ``lower_s``),
+    each compiling in the background from its lowering on (``compile_s``: from the first part's
+    start to the last part's end). ``args``: (state, keys, first) or their shapes."""
+    state, keys, first = args
+    compiling = _CompilingParts(scheduler, timer, _compile_options(keys.shape[0], mesh))
+    carry = {"state": state, "key": keys}
+    try:
+        for names in ITERATION_PARTS:
+            program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
+            with timer("trace_s"):
+                traced = program.trace(program_config(cfg), carry, first)
+            with timer("lower_s"):
+                lowered = traced.lower()
+            compiling.start(lowered)
+            carry.update(lowered.out_info)
+    except BaseException:
+        compiling.close()
+        raise
+    return compiling
+
+
 def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Timer,
               scheduler: Scheduler, slot: bool, mesh):
     """``program`` (for ``mesh``) compiled (in a compile slot if ``slot``) and kept by the
     scheduler; an already compiled one is returned as it is."""
-    if not isinstance(program, jax.stages.Lowered):
+    if isinstance(program, _CompilingParts):
+        compiled = program.result()
+    elif isinstance(program, jax.stages.Lowered):
+        with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
+            compiled = program.compile(compiler_options=_compile_options(num_seeds, mesh))
+    else:
         return program
-    with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
-        options = sharding.compiler_options(sharding.seeds_per_device(num_seeds, mesh.size), _platform(mesh))
-        compiled = program.compile(compiler_options=options or None)
     scheduler.programs[_program_name(kind, cfg, num_seeds, mesh)] = compiled
     return compiled
 
@@ -701,7 +806,8 @@ def _child_run(job: dict, events, stop_event) -> None:
     for name, value in job["jax_config"].items():
         jax.config.update(name, value)
     try:
-        with Scheduler(job["compile_jobs"], job["devices"], switch_interval=None) as scheduler:
+        with Scheduler(job["compile_jobs"], job["devices"], switch_interval=None,
+                       iteration_programs=job["iteration_programs"]) as scheduler:
             def forward_stop():
                 # polled: a process that exits while waiting on a multiprocessing Event leaves the
                 # parent's ``set`` waiting for it forever
@@ -740,6 +846,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
            "stability": stability, "devices": devices,
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
+           "iteration_programs": "auto" if scheduler is None else scheduler.iteration_programs,
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
     child = ctx.Process(target=_child_run, args=(job, events, stop_event), name=f"gmr-jax {label}", daemon=True)
     with _SPAWN_LOCK:  # the child inherits this environment

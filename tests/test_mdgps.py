@@ -101,6 +101,49 @@ def test_policy_iteration_jit_equals_eager(algorithm):
     assert np.isfinite(np.asarray(jitted[1]["final_state_mse_policy"])).all()
 
 
+def _iteration_in_parts(cfg, groups):
+    """``mdgps.iteration`` as the runner compiles it in parts: each group of parts a jitted
+    program of its own (``mdgps.part_program``), the carry passed between them."""
+    programs = [jax.jit(mdgps.part_program(names), static_argnums=0) for names in groups]
+
+    def step(state, key, first):
+        carry = {"state": state, "key": key}
+        for program in programs:
+            carry.update(program(cfg, carry, first))
+        return mdgps.iteration_result(carry)
+    return step
+
+
+@pytest.mark.parametrize("algorithm", ["mdgps", "gmr"])
+def test_iteration_in_separate_programs_equals_the_whole_program(algorithm):
+    # The runner may compile an iteration as the programs of its parts (runner.ITERATION_PARTS);
+    # they are the same computation split at stage boundaries, so the two differ only where XLA
+    # fuses and orders sums differently across a boundary: within the tolerance measured from
+    # ε-perturbed inputs (tests/tolerances.py), for the first iteration (catch-up S-step) and a
+    # later one. Every part is used once, in ``mdgps.ITERATION_PARTS``' order.
+    from gmr_jax import runner
+
+    assert [n for g in runner.ITERATION_PARTS for n in g] == list(mdgps.ITERATION_PARTS)
+    cfg = small(algorithm)
+    state = mdgps.init(cfg, jax.random.PRNGKey(1))
+    in_parts = _iteration_in_parts(cfg, runner.ITERATION_PARTS)
+    for first, key in ((True, jax.random.PRNGKey(2)), (False, jax.random.PRNGKey(3))):
+        flag = jnp.asarray(first)
+        whole, tol = measured_tol(lambda s: _iteration_jit(cfg, s, key, flag), (state,), SAFETY)
+        assert_tolerances_small(whole, tol, 1e-5)
+        assert_trees_within(in_parts(state, key, flag), whole, tol)
+        state = whole[0]
+    assert int(state.iteration) == 2
+
+
+def test_a_part_may_not_replace_an_entry_of_the_carry():
+    cfg = small("lqr")
+    state = jax.eval_shape(lambda k: mdgps.init(cfg, k), jax.random.PRNGKey(1))
+    with pytest.raises(ValueError, match="would replace"):
+        jax.eval_shape(lambda s: mdgps.run_parts(cfg, ("rollouts", "rollouts"), {"state": s, "key": jax.random.PRNGKey(0)},
+                                                 jnp.asarray(True)), state)
+
+
 def test_first_iteration_defaults_to_the_state_counter(monkeypatch):
     # Without the flag ``iteration`` takes the first iteration from ``state.iteration == 0``; the
     # flag then reaches the stages as the explicit one would (checked at the first stage, which

@@ -93,6 +93,39 @@ def test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one(whole,
     np.testing.assert_array_equal(extended["robustness"]["mse"], result["robustness"]["mse"])
 
 
+def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, tmp_path):
+    """``iteration_programs="parts"``: each group of ``runner.ITERATION_PARTS`` compiled as a
+    program of its own (in the background, from its lowering on), called in turn by the training
+    loop. The parts equal the whole iteration to round-off (tested against measured tolerances in
+    ``test_mdgps.py``); here, the whole runner: every metric within 1e-6 of its array's scale (on
+    the CPU the two differ by about 1e-15 relative, and ε-perturbed inputs move one iteration's
+    outputs by at most 5e-9 of their scale, test_mdgps.py), integer and boolean metrics equal."""
+    from tolerances import assert_trees_within
+
+    cfg, root, result, _ = whole
+    with runner.Scheduler(compile_jobs=1, devices=1, iteration_programs="parts") as own:
+        parts = runner.run(cfg, SEEDS, tmp_path / "parts", scheduler=own, stability=False)
+        (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
+    assert isinstance(step, runner._PartsStep) and len(step.programs) == len(runner.ITERATION_PARTS)
+    assert parts["timing"]["compile_s"] > 0 and parts["timing"]["trace_s"] > 0
+    tol = lambda tree: [1e-6 * float(np.max(np.abs(a), initial=0.0)) for a in jax.tree_util.tree_leaves(tree)]  # noqa: E731
+    assert_trees_within(parts["history"], result["history"], tol(result["history"]))
+    final = _final_state(cfg, root / "whole")
+    assert_trees_within(_final_state(cfg, tmp_path / "parts"), final, tol(final))
+    assert_trees_within(parts["robustness"], result["robustness"], tol(result["robustness"]))
+
+
+def test_iteration_programs_resolve_per_run_and_platform():
+    gmr, lqr = small("gmr"), small("lqr")
+    assert runner.iteration_programs_for("auto", gmr, "gpu") == "parts"
+    assert runner.iteration_programs_for("auto", gmr, "cpu") == "whole"
+    assert runner.iteration_programs_for("auto", lqr, "gpu") == "whole"  # no policy: no S-steps to split
+    assert runner.iteration_programs_for("parts", gmr, "cpu") == "parts"
+    assert runner.iteration_programs_for("whole", gmr, "gpu") == "whole"
+    with pytest.raises(ValueError, match="iteration_programs: 'some' is not one of auto, whole, parts"):
+        runner.Scheduler(iteration_programs="some")
+
+
 def test_history_keeps_its_dtypes_through_a_checkpoint():
     """A checkpoint stores the metrics as JSON numbers; restored, they have their own dtypes
     again, so that a resumed float32 run's means (float32 sums) are the uninterrupted run's."""
