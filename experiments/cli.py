@@ -93,7 +93,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "one compilation over the cores, so more at once mostly slow each other")
     p.add_argument("--iteration-programs", default="auto", choices=runner.ITERATION_PROGRAMS,
                    help="compile each run's iteration as one program (whole) or as the programs of its "
-                        "parts, which compile in parallel, each as soon as it is traced (parts); default "
+                        "parts, which compile in parallel (parts); default "
                         "%(default)s: parts for the policy runs on a GPU (runner.ITERATION_PARTS; "
                         "benchmarks/RESULTS.md, twenty-third session); the choice is written to config.json")
     p.add_argument("--autotune", action="store_true",

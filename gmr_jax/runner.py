@@ -171,9 +171,9 @@ def switch_interval(seconds: float | None):
 
 ITERATION_PROGRAMS = ("auto", "whole", "parts")
 """How the runner compiles a run's iteration (``Scheduler.iteration_programs``): "whole" as one
-program (``mdgps.iteration``); "parts" as the programs of ``ITERATION_PARTS``, each compiled
-(in a thread of its own) as soon as it is lowered, while the next one is traced; "auto":
-parts for the runs of a policy on a GPU, whole elsewhere."""
+program (``mdgps.iteration``); "parts" as the programs of ``ITERATION_PARTS``, traced one after
+the other and compiled in parallel threads; "auto": parts for the runs of a policy on a GPU,
+whole elsewhere."""
 
 ITERATION_PARTS = (("rollouts", "model"), ("catch_up",), ("cstep",), ("sstep", "curve"))
 """The groups of ``mdgps.ITERATION_PARTS`` that the runner compiles as programs of their own
@@ -366,7 +366,7 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
     """The scheduler's compiled ``kind`` program ("step" or "robustness") for ``cfg`` and this
     seed batch on ``mesh``, or else the program traced and lowered (timed; compile it with
     :func:`_compiled`): a ``jax.stages.Lowered``, or for an iteration in parts
-    (``Scheduler.iteration_programs``) a :class:`_CompilingParts` whose parts already compile.
+    (``Scheduler.iteration_programs``) a :class:`_LoweredParts`.
     ``args``: the program's array arguments (or their shapes), seeds first. It is traced and
     lowered with ``mesh``'s first device as JAX's default device, so that choices made while
     tracing (``sharding.target_platform``) follow the run's platform, and arguments given as
@@ -377,7 +377,7 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
     prefix = _TIMER_PREFIX[kind]
     with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
         if kind == "step" and iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh)) == "parts":
-            return _lowered_parts(cfg, args, timer, scheduler, mesh)
+            return _lowered_parts(cfg, args, timer, mesh)
         with timer(f"{prefix}trace_s"):
             traced = _program(kind, mesh).trace(program_config(cfg), *args)
         with timer(f"{prefix}lower_s"):
@@ -402,70 +402,42 @@ class _PartsStep:
         return mdgps.iteration_result(carry)
 
 
-class _CompilingParts:
-    """An iteration's parts being compiled (futures of their executables), each started as soon
-    as it was lowered, in one compile slot held from the first part's start to the end of the
-    last (:meth:`result`)."""
+class _LoweredParts(NamedTuple):
+    """An iteration's parts (``ITERATION_PARTS``) lowered, to be compiled together."""
 
-    def __init__(self, scheduler: Scheduler, timer: Timer, options):
-        self._slots, self._timer, self._options = scheduler.compile_slots, timer, options
-        self._pool = concurrent.futures.ThreadPoolExecutor(len(ITERATION_PARTS), thread_name_prefix="gmr-jax-compile")
-        self._futures: list = []
-        self._t0 = None
-
-    def start(self, lowered) -> None:
-        if self._t0 is None:
-            self._slots.acquire()
-            self._t0 = time.perf_counter()
-        self._futures.append(self._pool.submit(lowered.compile, compiler_options=self._options))
-
-    def result(self) -> _PartsStep:
-        try:
-            return _PartsStep(f.result() for f in self._futures)
-        finally:
-            self.close()
-
-    def close(self) -> None:
-        self._pool.shutdown(wait=True)
-        if self._t0 is not None:
-            self._timer["compile_s"] = self._timer.get("compile_s", 0.0) + time.perf_counter() - self._t0
-            self._t0 = None
-            self._slots.release()
+    parts: tuple
 
 
-def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh) -> _CompilingParts:
+def _lowered_parts(cfg: config.Config, args, timer: Timer, mesh) -> _LoweredParts:
     """The iteration's parts traced and lowered one after the other (``trace_s``, ``lower_s``),
-    each compiling in the background from its lowering on (``compile_s``: from the first part's
-    start to the last part's end). ``args``: (state, keys, first) or their shapes."""
+    each from the shapes of the carry that the parts before it leave. ``args``: (state, keys,
+    first) or their shapes."""
     state, keys, first = args
-    compiling = _CompilingParts(scheduler, timer, _compile_options(keys.shape[0], mesh))
-    carry = {"state": state, "key": keys}
-    try:
-        for names in ITERATION_PARTS:
-            program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
-            with timer("trace_s"):
-                traced = program.trace(program_config(cfg), carry, first)
-            with timer("lower_s"):
-                lowered = traced.lower()
-            compiling.start(lowered)
-            carry.update(lowered.out_info)
-    except BaseException:
-        compiling.close()
-        raise
-    return compiling
+    carry, parts = {"state": state, "key": keys}, []
+    for names in ITERATION_PARTS:
+        program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
+        with timer("trace_s"):
+            traced = program.trace(program_config(cfg), carry, first)
+        with timer("lower_s"):
+            parts.append(traced.lower())
+        carry.update(parts[-1].out_info)
+    return _LoweredParts(tuple(parts))
 
 
 def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Timer,
               scheduler: Scheduler, slot: bool, mesh):
     """``program`` (for ``mesh``) compiled (in a compile slot if ``slot``) and kept by the
-    scheduler; an already compiled one is returned as it is."""
-    if isinstance(program, _CompilingParts):
-        compiled = program.result()
-    elif isinstance(program, jax.stages.Lowered):
-        with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
-            compiled = program.compile(compiler_options=_compile_options(num_seeds, mesh))
-    else:
+    scheduler; an already compiled one is returned as it is. The parts of an iteration
+    (:class:`_LoweredParts`) compile in parallel threads, in one slot."""
+    if not isinstance(program, (jax.stages.Lowered, _LoweredParts)):
         return program
+    options = _compile_options(num_seeds, mesh)
+    with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
+        if isinstance(program, _LoweredParts):
+            with concurrent.futures.ThreadPoolExecutor(len(program.parts), thread_name_prefix="gmr-jax-compile") as pool:
+                compiled = _PartsStep(pool.map(lambda part: part.compile(compiler_options=options), program.parts))
+        else:
+            compiled = program.compile(compiler_options=options)
     scheduler.programs[_program_name(kind, cfg, num_seeds, mesh)] = compiled
     return compiled
 
