@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import concurrent.futures
 import json
 import os
 import pathlib
@@ -348,18 +349,32 @@ def _stop_on_signals(scheduler: runner.Scheduler):
         signal.signal(sig, handler)
 
 
+def _devices_and_compiler_options(args) -> list:
+    """The devices the study uses; also settles XLA's compiler options for its programs
+    (``sharding.compiler_options``, cached: a first compilation, the backend's start included)."""
+    import jax
+
+    used = jax.local_devices()[: args.devices or len(jax.local_devices())]
+    sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used)))
+    return used
+
+
 def run_study(args, t_start: float) -> int:
     """Train, evaluate and report (the part of ``main`` after the arguments)."""
     import jax
 
-    from experiments import report
-
     out = pathlib.Path(args.out)
     if not args.resume:
         runner.check_fresh([runner.run_folder(out, *key) for key in args.configs])
+    # The backend starts in a thread while this one imports the reporting code (SciPy): the one
+    # waits on the GPU's driver and XLA, the other holds the GIL (benchmarks/RESULTS.md,
+    # twenty-third session).
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        devices = pool.submit(_devices_and_compiler_options, args)
+        from experiments import report
+        used = devices.result()
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    used = jax.local_devices()[: args.devices or len(jax.local_devices())]
     device = f"{used[0].platform}: {used[0].device_kind}" + (f" × {len(used)}" if len(used) > 1 else "")
     on_cpu = [f"{s}/{a}" for (s, a) in args.configs if (s, a) in args.platforms]
     if on_cpu:
