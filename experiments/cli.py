@@ -22,6 +22,7 @@ import traceback
 
 from experiments import xla_flags
 from gmr_jax import checkpoint, config, policies, runner, sharding, sstep, tasks
+from gmr_jax.program_store import ProgramStore
 from gmr_jax.sim import MJCFError
 
 # Programs (iterations, evaluations) compiled at once (--compile-jobs): 2 and 4 were equally fast
@@ -110,6 +111,11 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="persistent XLA compilation cache: a repeated run skips most of its "
                         "compilation (default: $JAX_COMPILATION_CACHE_DIR or %(default)s; "
                         "'none' disables it)")
+    p.add_argument("--program-store", action=argparse.BooleanOptionalAction, default=True,
+                   help="keep the runs' programs, once traced, as serialized JAX modules beside the "
+                        "compilation cache (DIR_programs), so that a repeated run lowers them instead of "
+                        "tracing them again (default; programs with host callbacks are traced every time; "
+                        "gmr_jax.program_store). Off with --compilation-cache none")
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
                         "or --set sstep__epochs=100 (repeatable; values are Python literals)")
@@ -349,6 +355,15 @@ def _stop_on_signals(scheduler: runner.Scheduler):
         signal.signal(sig, handler)
 
 
+def program_store(args) -> ProgramStore | None:
+    """The study's program store: beside the compilation cache (``DIR_programs``), unless that
+    is off or ``--no-program-store``."""
+    if args.compilation_cache == "none" or not args.program_store:
+        return None
+    cache = pathlib.Path(args.compilation_cache).expanduser()
+    return ProgramStore(cache.with_name(cache.name + "_programs"))
+
+
 def _devices_and_compiler_options(args) -> list:
     """The devices the study uses; also settles XLA's compiler options for its programs
     (``sharding.compiler_options``, cached: a first compilation, the backend's start included)."""
@@ -384,6 +399,7 @@ def run_study(args, t_start: float) -> int:
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
+        "program_store": None if program_store(args) is None else str(program_store(args).directory),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
         # GMR's packed S-step traced with its products as reductions (sharding.seed_block)
@@ -407,7 +423,8 @@ def run_study(args, t_start: float) -> int:
     for (scenario, algorithm), cfg in args.configs.items():
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
-    with runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs) as scheduler:
+    with runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs,
+                          program_store=program_store(args)) as scheduler:
         _stop_on_signals(scheduler)
         plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()

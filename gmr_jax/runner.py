@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmr_jax import checkpoint, config, evaluate, mdgps, policies, sharding, tasks
+from gmr_jax import program_store as program_store_lib
 from gmr_jax import stability as stability_lib
 
 ProgressFn = Callable[[dict], None]
@@ -175,10 +176,12 @@ program (``mdgps.iteration``); "parts" as the programs of ``ITERATION_PARTS``, t
 the other and compiled in parallel threads; "auto": parts for the runs of a policy on a GPU,
 whole elsewhere."""
 
-ITERATION_PARTS = (("rollouts", "model"), ("catch_up",), ("cstep",), ("sstep", "curve"))
+ITERATION_PARTS = (("rollouts",), ("model",), ("catch_up",), ("cstep",), ("sstep",), ("curve",))
 """The groups of ``mdgps.ITERATION_PARTS`` that the runner compiles as programs of their own
-(``iteration_programs`` "parts"): each of about the same compile time, the first iteration's
-catch-up S-step apart from the S-step (benchmarks/RESULTS.md, twenty-third session)."""
+(``iteration_programs`` "parts"): every part alone, so that the first iteration's catch-up
+S-step compiles apart from the S-step, and the parts with host callbacks (the C MuJoCo
+rollouts) apart from those that a ``ProgramStore`` can keep (benchmarks/RESULTS.md,
+twenty-third session)."""
 
 
 def iteration_programs_for(choice: str, cfg: config.Config, platform: str) -> str:
@@ -215,15 +218,19 @@ class Scheduler:
         while :func:`run_all` trains runs side by side; None leaves Python's (5 ms).
       iteration_programs: one of ``ITERATION_PROGRAMS`` (the iteration as one program or in
         parts; a run in parts takes one compile slot for all its parts).
+      program_store: a ``program_store.ProgramStore`` that the programs of one-device runs are
+        lowered from (traced and stored the first time), or None: traced in every process.
     """
 
     def __init__(self, compile_jobs: int = 2, devices: int | None = None, workers: int = 16,
-                 switch_interval: float | None = SWITCH_INTERVAL_S, iteration_programs: str = "auto"):
+                 switch_interval: float | None = SWITCH_INTERVAL_S, iteration_programs: str = "auto",
+                 program_store: program_store_lib.ProgramStore | None = None):
         config.check_positive_int("compile_jobs", compile_jobs)
         if iteration_programs not in ITERATION_PROGRAMS:
             raise ValueError(f"iteration_programs: {iteration_programs!r} is not one of "
                              f"{', '.join(ITERATION_PROGRAMS)}")
         self.iteration_programs = iteration_programs
+        self.program_store = program_store
         self.compile_jobs = compile_jobs
         if switch_interval is not None:
             config.check_positive("switch_interval", switch_interval)
@@ -377,11 +384,24 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
     prefix = _TIMER_PREFIX[kind]
     with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
         if kind == "step" and iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh)) == "parts":
-            return _lowered_parts(cfg, args, timer, mesh)
-        with timer(f"{prefix}trace_s"):
-            traced = _program(kind, mesh).trace(program_config(cfg), *args)
-        with timer(f"{prefix}lower_s"):
-            return traced.lower()
+            return _lowered_parts(cfg, args, timer, scheduler, mesh)
+        return _traced_and_lowered(kind, _program(kind, mesh), cfg, args, timer, scheduler, mesh, prefix)
+
+
+def _traced_and_lowered(name: str, program, cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh,
+                        prefix: str = ""):
+    """``program(program_config(cfg), *args)`` lowered: from the scheduler's program store where
+    it has one and the program runs on one device, else traced (``{prefix}trace_s``,
+    ``{prefix}lower_s``). Call it under the program's ``jax.default_device``."""
+    if scheduler.program_store is not None and mesh.size == 1:
+        stored = scheduler.program_store.lower(name, program, program_config(cfg), args, _platform(mesh), timer,
+                                               prefix)
+        if stored is not None:
+            return stored
+    with timer(f"{prefix}trace_s"):
+        traced = program.trace(program_config(cfg), *args)
+    with timer(f"{prefix}lower_s"):
+        return traced.lower()
 
 
 def _compile_options(num_seeds: int, mesh) -> dict | None:
@@ -408,7 +428,7 @@ class _LoweredParts(NamedTuple):
     parts: tuple
 
 
-def _lowered_parts(cfg: config.Config, args, timer: Timer, mesh) -> _LoweredParts:
+def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh) -> _LoweredParts:
     """The iteration's parts traced and lowered one after the other (``trace_s``, ``lower_s``),
     each from the shapes of the carry that the parts before it leave. ``args``: (state, keys,
     first) or their shapes."""
@@ -416,10 +436,8 @@ def _lowered_parts(cfg: config.Config, args, timer: Timer, mesh) -> _LoweredPart
     carry, parts = {"state": state, "key": keys}, []
     for names in ITERATION_PARTS:
         program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
-        with timer("trace_s"):
-            traced = program.trace(program_config(cfg), carry, first)
-        with timer("lower_s"):
-            parts.append(traced.lower())
+        parts.append(_traced_and_lowered("step:" + "+".join(names), program, cfg, (carry, first), timer,
+                                         scheduler, mesh))
         carry.update(parts[-1].out_info)
     return _LoweredParts(tuple(parts))
 
@@ -429,7 +447,7 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     """``program`` (for ``mesh``) compiled (in a compile slot if ``slot``) and kept by the
     scheduler; an already compiled one is returned as it is. The parts of an iteration
     (:class:`_LoweredParts`) compile in parallel threads, in one slot."""
-    if not isinstance(program, (jax.stages.Lowered, _LoweredParts)):
+    if not isinstance(program, (jax.stages.Lowered, program_store_lib.StoredLowered, _LoweredParts)):
         return program
     options = _compile_options(num_seeds, mesh)
     with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
@@ -638,7 +656,7 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
             options = sharding.compiler_options(sharding.seeds_per_device(k_init.shape[0], layout.mesh.size),
                                                 _platform(layout.mesh))
             with jax.default_device(layout.mesh.devices.flat[0]):
-                lowered = init_program.lower(program_config(cfg), k_init)
+                lowered = _traced_and_lowered("init", init_program, cfg, (k_init,), Timer(), scheduler, layout.mesh)
             compiled = lowered.compile(compiler_options=options or None)
             return jax.block_until_ready(compiled(k_init))
     state_future = scheduler.pool.submit(make_initial)
@@ -778,8 +796,9 @@ def _child_run(job: dict, events, stop_event) -> None:
     for name, value in job["jax_config"].items():
         jax.config.update(name, value)
     try:
+        store = None if job["program_store"] is None else program_store_lib.ProgramStore(job["program_store"])
         with Scheduler(job["compile_jobs"], job["devices"], switch_interval=None,
-                       iteration_programs=job["iteration_programs"]) as scheduler:
+                       iteration_programs=job["iteration_programs"], program_store=store) as scheduler:
             def forward_stop():
                 # polled: a process that exits while waiting on a multiprocessing Event leaves the
                 # parent's ``set`` waiting for it forever
@@ -819,6 +838,8 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
            "stability": stability, "devices": devices,
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "iteration_programs": "auto" if scheduler is None else scheduler.iteration_programs,
+           "program_store": None if scheduler is None or scheduler.program_store is None
+           else str(scheduler.program_store.directory),
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
     child = ctx.Process(target=_child_run, args=(job, events, stop_event), name=f"gmr-jax {label}", daemon=True)
     with _SPAWN_LOCK:  # the child inherits this environment
