@@ -45,6 +45,7 @@ import numpy as np
 
 from gmr_jax import checkpoint, config, evaluate, mdgps, policies, sharding, tasks
 from gmr_jax import program_store as program_store_lib
+from gmr_jax import sim as sim_lib
 from gmr_jax import stability as stability_lib
 
 ProgressFn = Callable[[dict], None]
@@ -388,12 +389,25 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
         return _traced_and_lowered(kind, _program(kind, mesh), cfg, args, timer, scheduler, mesh, prefix)
 
 
+_ROLLOUT_PROGRAMS = ("step", "step:rollouts", "step:curve", "robustness")
+"""The programs that roll the plant out (the whole iteration, its rollout and learning-curve parts,
+the evaluation)."""
+
+
+def _with_host_callbacks(name: str, cfg: config.Config) -> bool:
+    """Whether program ``name`` of ``cfg`` calls C MuJoCo through host callbacks (traced for the
+    current default device), which ``jax.export`` cannot serialize: the program store would trace
+    it once more only to find that out. Any other program that cannot be stored is found by
+    the store itself (and remembered)."""
+    return name in _ROLLOUT_PROGRAMS and sim_lib.make_sim(cfg.sim).backend == "mujoco"
+
+
 def _traced_and_lowered(name: str, program, cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh,
                         prefix: str = ""):
     """``program(program_config(cfg), *args)`` lowered: from the scheduler's program store where
     it has one and the program runs on one device, else traced (``{prefix}trace_s``,
     ``{prefix}lower_s``). Call it under the program's ``jax.default_device``."""
-    if scheduler.program_store is not None and mesh.size == 1:
+    if scheduler.program_store is not None and mesh.size == 1 and not _with_host_callbacks(name, cfg):
         stored = scheduler.program_store.lower(name, program, program_config(cfg), args, _platform(mesh), timer,
                                                prefix)
         if stored is not None:
