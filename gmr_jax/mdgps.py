@@ -18,6 +18,10 @@ The first iteration differs in one way: MDGPS first fits the policy to the initi
 scalar and both differences are ``lax.cond``/``where`` on it, so one compiled program serves
 every iteration.
 
+The iteration is a chain of parts (``ITERATION_PARTS``, each a function of a carry dict) that
+``iteration`` traces as one program and that the runner may compile as programs of their own,
+in parallel (``part_program``, ``runner.ITERATION_PARTS``).
+
 ``train`` runs the same iterations with the rollouts rearranged (``rollout_stage``): each scan
 step rolls out this iteration's samples together with the learning curve of the previous
 iteration's results, so the whole run holds one instance of the simulator's rollout, which is

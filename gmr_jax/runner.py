@@ -185,11 +185,15 @@ rollouts) apart from those that a ``ProgramStore`` can keep (benchmarks/RESULTS.
 twenty-third session)."""
 
 
+def _check_iteration_programs(choice: str) -> None:
+    if choice not in ITERATION_PROGRAMS:
+        raise ValueError(f"iteration_programs: {choice!r} is not one of {', '.join(ITERATION_PROGRAMS)}")
+
+
 def iteration_programs_for(choice: str, cfg: config.Config, platform: str) -> str:
     """"whole" or "parts": ``choice`` (one of ``ITERATION_PROGRAMS``) for a run of ``cfg`` on
     ``platform``."""
-    if choice not in ITERATION_PROGRAMS:
-        raise ValueError(f"iteration_programs: {choice!r} is not one of {', '.join(ITERATION_PROGRAMS)}")
+    _check_iteration_programs(choice)
     if choice != "auto":
         return choice
     return "parts" if platform == "gpu" and policies.spec_for(cfg) is not None else "whole"
@@ -227,9 +231,7 @@ class Scheduler:
                  switch_interval: float | None = SWITCH_INTERVAL_S, iteration_programs: str = "auto",
                  program_store: program_store_lib.ProgramStore | None = None):
         config.check_positive_int("compile_jobs", compile_jobs)
-        if iteration_programs not in ITERATION_PROGRAMS:
-            raise ValueError(f"iteration_programs: {iteration_programs!r} is not one of "
-                             f"{', '.join(ITERATION_PROGRAMS)}")
+        _check_iteration_programs(iteration_programs)
         self.iteration_programs = iteration_programs
         self.program_store = program_store
         self.compile_jobs = compile_jobs
@@ -667,11 +669,9 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
 
     def make_initial():
         with timer("init_s"):
-            options = sharding.compiler_options(sharding.seeds_per_device(k_init.shape[0], layout.mesh.size),
-                                                _platform(layout.mesh))
             with jax.default_device(layout.mesh.devices.flat[0]):
                 lowered = _traced_and_lowered("init", init_program, cfg, (k_init,), Timer(), scheduler, layout.mesh)
-            compiled = lowered.compile(compiler_options=options or None)
+            compiled = lowered.compile(compiler_options=_compile_options(k_init.shape[0], layout.mesh))
             return jax.block_until_ready(compiled(k_init))
     state_future = scheduler.pool.submit(make_initial)
     num = k_init.shape[0]
