@@ -91,8 +91,10 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
     p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
-                   help="programs (iterations, evaluations) compiled at once (default: %(default)s). XLA spreads "
-                        "one compilation over the cores, so more at once mostly slow each other")
+                   help="programs (iterations, evaluations) compiled at once (default: %(default)s; an iteration "
+                        "in parts, --iteration-programs, counts as one and compiles its six parts in "
+                        "parallel). XLA spreads one compilation over the cores, so more at once mostly slow "
+                        "each other")
     p.add_argument("--iteration-programs", default="auto", choices=runner.ITERATION_PROGRAMS,
                    help="compile each run's iteration as one program (whole) or as the programs of its "
                         "parts, which compile in parallel (parts); default "
@@ -360,13 +362,13 @@ def program_store(args) -> ProgramStore | None:
     is off or ``--no-program-store``."""
     if args.compilation_cache == "none" or not args.program_store:
         return None
-    cache = pathlib.Path(args.compilation_cache).expanduser()
-    return ProgramStore(cache.with_name(cache.name + "_programs"))
+    cache = pathlib.Path(args.compilation_cache).expanduser().resolve()
+    return ProgramStore(cache.parent / (cache.name + "_programs"))
 
 
 def _devices_and_compiler_options(args) -> list:
     """The devices the study uses; also settles XLA's compiler options for its programs
-    (``sharding.compiler_options``, cached: a first compilation, the backend's start included)."""
+    (``sharding.compiler_options``, cached: a first compilation on the device)."""
     import jax
 
     used = jax.local_devices()[: args.devices or len(jax.local_devices())]
@@ -381,15 +383,16 @@ def run_study(args, t_start: float) -> int:
     out = pathlib.Path(args.out)
     if not args.resume:
         runner.check_fresh([runner.run_folder(out, *key) for key in args.configs])
-    # The backend starts in a thread while this one imports the reporting code (SciPy): the one
-    # waits on the GPU's driver and XLA, the other holds the GIL (benchmarks/RESULTS.md,
-    # twenty-third session).
+    # The compiler options are probed (a first compilation) in a thread while this one imports
+    # the reporting code (SciPy): the one waits on XLA, the other holds the GIL
+    # (benchmarks/RESULTS.md, twenty-third session).
     with concurrent.futures.ThreadPoolExecutor(1) as pool:
         devices = pool.submit(_devices_and_compiler_options, args)
         from experiments import report
         used = devices.result()
     out.mkdir(parents=True, exist_ok=True)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    store = program_store(args)
     device = f"{used[0].platform}: {used[0].device_kind}" + (f" × {len(used)}" if len(used) > 1 else "")
     on_cpu = [f"{s}/{a}" for (s, a) in args.configs if (s, a) in args.platforms]
     if on_cpu:
@@ -399,7 +402,7 @@ def run_study(args, t_start: float) -> int:
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
-        "program_store": None if program_store(args) is None else str(program_store(args).directory),
+        "program_store": None if store is None else str(store.directory),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
         # GMR's packed S-step traced with its products as reductions (sharding.seed_block)
@@ -424,7 +427,7 @@ def run_study(args, t_start: float) -> int:
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
     with runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs,
-                          program_store=program_store(args)) as scheduler:
+                          program_store=store) as scheduler:
         _stop_on_signals(scheduler)
         plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()

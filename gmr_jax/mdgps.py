@@ -515,6 +515,9 @@ ITERATION_PARTS = {"rollouts": _rollouts_part, "model": _model_part, "catch_up":
 
 _UPDATE_PARTS = tuple(ITERATION_PARTS)[1:-1]
 
+ROLLOUT_PARTS = ("rollouts", "curve")
+"""The parts that roll the plant out (with C MuJoCo: host callbacks)."""
+
 
 def run_parts(cfg: Config, names, carry: dict, first: Array) -> dict:
     """The carry after the parts ``names`` (in their order), traced under ``MATMUL_PRECISION``."""

@@ -9,13 +9,14 @@ stored module (milliseconds) instead of tracing the program again.
 
 A program is found by a key of everything its trace depends on: its name and static
 configuration, its arguments' tree, shapes and dtypes, the platform, JAX's settings that change
-tracing (``TRACE_SETTINGS``), the versions of JAX, jaxlib, MuJoCo and Flax, and the bytes of this
-package's source and of the arm's MJCF files. A program that ``jax.export`` cannot serialize (a
+tracing (``TRACE_SETTINGS``), the versions of the packages that tracing runs (JAX, jaxlib, MuJoCo,
+MJX, Flax, Optax, NumPy, ml_dtypes, opt_einsum), and the bytes of this package's source and of the
+arm's MJCF files. A program that ``jax.export`` cannot serialize (a
 host callback: the C MuJoCo rollouts) is traced as before; a marker file records that, so the
 export is tried once per key. A stored program is compiled from its exported module in the run
 that stores it too, so runs that load it and the run that stored it compile the same module and
-compute the same values. Files are written atomically; one that cannot be read is traced and
-written again. The files are pickles (the trees): keep the directory private, as the
+compute the same values. Files are written atomically; one that cannot be read or lowered is
+traced and written again; a store that cannot be written warns once and the runs go on. The files are pickles (the trees): keep the directory private, as the
 compilation cache.
 """
 
@@ -30,6 +31,7 @@ import os
 import pathlib
 import pickle
 import threading
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -37,10 +39,10 @@ import jax
 from gmr_jax import config, sim
 
 TRACE_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_default_prng_impl",
-                  "jax_threefry_partitionable")
+                  "jax_threefry_partitionable", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion")
 """JAX settings that change what a trace produces (part of every key)."""
 
-_VERSIONED = ("jax", "jaxlib", "mujoco", "flax")
+_VERSIONED = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "numpy", "ml_dtypes", "opt_einsum")
 
 
 @functools.cache
@@ -65,9 +67,15 @@ def _abstract(leaf) -> jax.ShapeDtypeStruct:
     return jax.ShapeDtypeStruct(tuple(leaf.shape), leaf.dtype)
 
 
+def export_platform(platform: str) -> str:
+    """``jax.export``'s name of a device platform: "cpu", or the GPU's ("cuda", "rocm")."""
+    return "cpu" if platform == "cpu" else jax.export.default_export_platform()
+
+
 def program_key(name: str, cfg: config.Config, args, platform: str) -> str:
     """The store's key of program ``name`` with static configuration ``cfg`` for ``args`` (arrays
-    or shapes) on ``platform``."""
+    or shapes) on ``platform`` (a device platform, keyed by its ``export_platform``)."""
+    platform = export_platform(platform)
     leaves, tree = jax.tree_util.tree_flatten(args)
     parts = {"name": name, "config": config.to_dict(cfg), "tree": str(tree), "platform": platform,
              "leaves": [[list(leaf.shape), str(leaf.dtype)] for leaf in leaves],
@@ -106,20 +114,32 @@ class StoredLowered(NamedTuple):
 
 
 class ProgramStore:
-    """Serialized programs in ``directory`` (created when first written)."""
+    """Serialized programs in ``directory`` (created when first written). A store that cannot
+    be written (a read-only or full disk) warns once and serves the programs of this process
+    from memory; the runs go on."""
 
     def __init__(self, directory):
         self.directory = pathlib.Path(directory)
-        self._lock = threading.Lock()
+        self._warned = False
 
     def _path(self, key: str, suffix: str) -> pathlib.Path:
         return self.directory / f"{key}{suffix}"
 
-    def _write(self, path: pathlib.Path, data: bytes) -> None:
-        self.directory.mkdir(parents=True, exist_ok=True)
+    def _write(self, path: pathlib.Path, make_data) -> None:
+        """``make_data()`` written atomically to ``path``; a failure warns (once) instead."""
         tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-        tmp.write_bytes(data)
-        tmp.replace(path)
+        try:
+            data = make_data()
+            self.directory.mkdir(parents=True, exist_ok=True)
+            tmp.write_bytes(data)
+            tmp.replace(path)
+        except (OSError, pickle.PicklingError, TypeError, AttributeError) as err:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            if not self._warned:
+                self._warned = True
+                warnings.warn(f"program store {self.directory}: cannot write ({err}); programs are traced "
+                              "as before (--no-program-store turns it off)", stacklevel=3)
 
     def _load(self, key: str, in_tree):
         try:
@@ -132,7 +152,9 @@ class ProgramStore:
 
     def _export(self, name: str, key: str, program, cfg, in_tree, avals, platform: str):
         """Trace ``program`` through ``jax.export`` and store it: (Exported, result tree), or
-        None (marker written) where it cannot be serialized."""
+        None where it cannot be serialized: a marker is written where that will not change (a host
+        callback, a custom call without stability guarantees), not for other failures (e.g. a
+        missing serialization package)."""
         out_trees = []
 
         def flat(*leaves):
@@ -141,15 +163,21 @@ class ProgramStore:
             out_trees.append(out_tree)
             return out_leaves
 
-        target = "cpu" if platform == "cpu" else jax.export.default_export_platform()
         try:
-            blob = jax.export.export(jax.jit(flat), platforms=[target])(*avals).serialize()
-        except Exception as err:  # noqa: BLE001 (host callbacks, custom calls: traced as before)
-            self._write(self._path(key, ".none"), f"{name}: {type(err).__name__}: {err}".encode())
+            blob = jax.export.export(jax.jit(flat), platforms=[export_platform(platform)])(*avals).serialize()
+        except (NotImplementedError, ValueError) as err:  # host callbacks, custom calls: traced as before
+            self._write(self._path(key, ".none"), lambda: f"{name}: {type(err).__name__}: {err}".encode())
             return None
-        self._write(self._path(key, ".exported"),
-                    pickle.dumps({"name": name, "exported": bytes(blob), "in_tree": in_tree, "out_tree": out_trees[-1]}))
+        except Exception:  # noqa: BLE001 (anything else: traced as before, tried again next time)
+            return None
+        self._write(self._path(key, ".exported"), lambda: pickle.dumps(
+            {"name": name, "exported": bytes(blob), "in_tree": in_tree, "out_tree": out_trees[-1]}))
         return jax.export.deserialize(blob), out_trees[-1]
+
+    @staticmethod
+    def _lowered(found, in_tree, avals) -> StoredLowered:
+        exported, out_tree = found
+        return StoredLowered(jax.jit(exported.call).trace(*avals).lower(), in_tree, out_tree)
 
     def lower(self, name: str, program, cfg: config.Config, args, platform: str, timer=None,
               prefix: str = "") -> StoredLowered | None:
@@ -166,10 +194,16 @@ class ProgramStore:
             return None
         timed = (lambda phase: contextlib.nullcontext()) if timer is None else timer  # noqa: E731
         with timed(f"{prefix}trace_s"):
-            found = self._load(key, in_tree) or self._export(name, key, program, cfg, in_tree, avals, platform)
+            found = self._load(key, in_tree)
+        if found is not None:
+            try:
+                with timed(f"{prefix}lower_s"):
+                    return self._lowered(found, in_tree, avals)
+            except Exception:  # noqa: BLE001 (a module this JAX cannot lower: exported again)
+                pass
+        with timed(f"{prefix}trace_s"):
+            found = self._export(name, key, program, cfg, in_tree, avals, platform)
         if found is None:
             return None
-        exported, out_tree = found
         with timed(f"{prefix}lower_s"):
-            lowered = jax.jit(exported.call).trace(*avals).lower()
-        return StoredLowered(lowered, in_tree, out_tree)
+            return self._lowered(found, in_tree, avals)

@@ -375,8 +375,9 @@ def _program_name(kind: str, cfg: config.Config, num_seeds: int, mesh) -> tuple:
 def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh):
     """The scheduler's compiled ``kind`` program ("step" or "robustness") for ``cfg`` and this
     seed batch on ``mesh``, or else the program traced and lowered (timed; compile it with
-    :func:`_compiled`): a ``jax.stages.Lowered``, or for an iteration in parts
-    (``Scheduler.iteration_programs``) a :class:`_LoweredParts`.
+    :func:`_compiled`): a ``jax.stages.Lowered`` (a ``program_store.StoredLowered`` where the
+    scheduler's program store holds it), or for an iteration in parts
+    (``Scheduler.iteration_programs``) a :class:`_LoweredParts` of those.
     ``args``: the program's array arguments (or their shapes), seeds first. It is traced and
     lowered with ``mesh``'s first device as JAX's default device, so that choices made while
     tracing (``sharding.target_platform``) follow the run's platform, and arguments given as
@@ -391,9 +392,14 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
         return _traced_and_lowered(kind, _program(kind, mesh), cfg, args, timer, scheduler, mesh, prefix)
 
 
-_ROLLOUT_PROGRAMS = ("step", "step:rollouts", "step:curve", "robustness")
-"""The programs that roll the plant out (the whole iteration, its rollout and learning-curve parts,
-the evaluation)."""
+def _part_program_name(names) -> str:
+    return "step:" + "+".join(names)
+
+
+_ROLLOUT_PROGRAMS = ("step", "robustness") + tuple(
+    _part_program_name(names) for names in ITERATION_PARTS if set(names) & set(mdgps.ROLLOUT_PARTS))
+"""The programs that roll the plant out (the whole iteration, the part programs with
+``mdgps.ROLLOUT_PARTS``, the evaluation)."""
 
 
 def _with_host_callbacks(name: str, cfg: config.Config) -> bool:
@@ -452,7 +458,7 @@ def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler,
     carry, parts = {"state": state, "key": keys}, []
     for names in ITERATION_PARTS:
         program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
-        parts.append(_traced_and_lowered("step:" + "+".join(names), program, cfg, (carry, first), timer,
+        parts.append(_traced_and_lowered(_part_program_name(names), program, cfg, (carry, first), timer,
                                          scheduler, mesh))
         carry.update(parts[-1].out_info)
     return _LoweredParts(tuple(parts))
