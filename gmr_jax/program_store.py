@@ -11,13 +11,13 @@ A program is found by a key of everything its trace depends on: its name and sta
 configuration, its arguments' tree, shapes and dtypes, the platform, JAX's settings that change
 tracing (``TRACE_SETTINGS``), the versions of the packages that tracing runs (JAX, jaxlib, MuJoCo,
 MJX, Flax, Optax, NumPy, ml_dtypes, opt_einsum), and the bytes of this package's source and of the
-arm's MJCF files. A program that ``jax.export`` cannot serialize (a
-host callback: the C MuJoCo rollouts) is traced as before; a marker file records that, so the
-export is tried once per key. A stored program is compiled from its exported module in the run
-that stores it too, so runs that load it and the run that stored it compile the same module and
-compute the same values. Files are written atomically; one that cannot be read or lowered is
-traced and written again; a store that cannot be written warns once and the runs go on. The files are pickles (the trees): keep the directory private, as the
-compilation cache.
+arm's MJCF files. A program that ``jax.export`` cannot serialize (a host callback: the C MuJoCo
+rollouts) is traced as before; a marker file records that, so the export is tried once per key.
+A stored program is compiled from its exported module in the run that stores it too, so runs
+that load it and the run that stored it compile the same module and compute the same values.
+Files are written atomically; one that cannot be read or lowered is traced and written again; a
+store that cannot be written warns once and the runs go on. The files are pickles (the trees):
+keep the directory private, as the compilation cache.
 """
 
 from __future__ import annotations
