@@ -14,7 +14,8 @@ the real ones: the time of a step does not depend on the values. ``--adam-entrie
 times the packed form with Adam over the whole packed vector and over its trained entries only
 (``SStepConfig.adam_entries``) in the same run, ``--statistics epoch,step`` with the loss's
 statistics evaluated per epoch from the kept weights and inside every step
-(``SStepConfig.statistics``). ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
+(``SStepConfig.statistics``), ``--statistics-epochs last,all`` with the statistics of the last
+epoch only and of every epoch (``SStepConfig.statistics_epochs``). ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
 Adam step, the device's busy and idle time, the costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
@@ -177,6 +178,9 @@ def parse_args(argv=None):
     p.add_argument("--statistics", default=config.SStepConfig.statistics,
                    help=f"comma-separated sstep.statistics of the packed form ({', '.join(config.SSTEP_STATISTICS)}): "
                         "the loss's statistics per epoch from the kept weights, or inside every step")
+    p.add_argument("--statistics-epochs", default=config.SStepConfig.statistics_epochs,
+                   help=f"comma-separated sstep.statistics_epochs ({', '.join(config.SSTEP_STATISTICS_EPOCHS)}): "
+                        "the statistics of the last epoch only, or of every epoch (default: %(default)s)")
     p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries,
                    help=f"comma-separated sstep.adam_entries of the packed form ({', '.join(config.SSTEP_ADAM_ENTRIES)}; "
                         "default: %(default)s)")
@@ -205,6 +209,7 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     for flag, value, allowed in (("--adam-entries", args.adam_entries, config.SSTEP_ADAM_ENTRIES),
                                  ("--statistics", args.statistics, config.SSTEP_STATISTICS),
+                                 ("--statistics-epochs", args.statistics_epochs, config.SSTEP_STATISTICS_EPOCHS),
                                  ("--kernel-dot", args.kernel_dot, gmr_kernel.DOTS)):
         bad = [v for v in value.split(",") if v not in allowed]
         if bad:
@@ -226,11 +231,13 @@ def parse_args(argv=None):
 def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
             adam_entries: str = config.SStepConfig.adam_entries,
             matmul_precision: str = mdgps.MATMUL_PRECISION, options: str = "runner",
-            stats_at: str = config.SStepConfig.statistics) -> tuple[dict, jax.Array]:
+            stats_at: str = config.SStepConfig.statistics,
+            stats_epochs: str = config.SStepConfig.statistics_epochs) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration (``options``: the runner's XLA options or
     none); returns its result row (and prints it) and the trained weights of the first timed
     S-step, [seeds, n]."""
     tag = (f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}_{stats_at}" if impl == "packed" else "")
+           + ("" if stats_epochs == config.SStepConfig.statistics_epochs else f"_{stats_epochs}")
            + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
            + ("" if options == "runner" else f"_{options}"))
     options_given = compiler_options(options, args.seeds)
@@ -238,7 +245,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     traced_as = (functools.partial(sharding.seed_block, args.seeds) if options == "runner"
                  else contextlib.nullcontext)
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
-                       sstep__adam_entries=adam_entries, sstep__statistics=stats_at)
+                       sstep__adam_entries=adam_entries, sstep__statistics=stats_at,
+                       sstep__statistics_epochs=stats_epochs)
     pol = policies.for_config(cfg)
     # with --against-float64, the data and initial weights are made in float64 and rounded
     made = jnp.float64 if args.against_float64 else dtype
@@ -298,6 +306,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "adam_entries": adam_entries if impl == "packed" else None,
            "statistics": stats_at if impl == "packed" else None,
            "statistics_resolved": resolved if impl == "packed" else None,
+           "statistics_epochs": stats_epochs,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
@@ -309,6 +318,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         row.update({f"{k}_vs_float64": v for k, v in _relative_differences(weights, exact).items()})
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
             else f"{impl}/{adam_entries}/{stats_at}" if impl == "packed" else impl)
+    if stats_epochs != config.SStepConfig.statistics_epochs:
+        name += f"/{stats_epochs}"
     if matmul_precision != mdgps.MATMUL_PRECISION:
         name += f"/{matmul_precision}"
     if options != "runner":
@@ -396,14 +407,15 @@ def main(argv=None) -> int:
                                 if impl == "kernel" else [(None, None, (e, st)) for e in args.adam_entries.split(",")
                                                           for st in args.statistics.split(",")]
                                 if impl == "packed" else [(None, None, None)])
+                    variants = [v + (se,) for v in variants for se in args.statistics_epochs.split(",")]
                     variants = [v + (mp, o) for v in variants for mp in args.matmul_precision.split(",")
                                 for o in args.compiler_options.split(",")]
-                    for warps, dot, entries, matmul_precision, options in variants:
+                    for warps, dot, entries, stats_epochs, matmul_precision, options in variants:
                         if warps:
                             gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
                         entries, stats = entries or (config.SStepConfig.adam_entries, config.SStepConfig.statistics)
                         row, weights = measure(algorithm, scenario, unroll, impl, args, dtype, entries,
-                                               matmul_precision, options, stats)
+                                               matmul_precision, options, stats, stats_epochs)
                         # every form trains the same weights to round-off: per seed, the largest
                         # difference from the first form listed relative to that seed's largest
                         # weight; the row reports the largest and the median over seeds

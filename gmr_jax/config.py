@@ -334,6 +334,7 @@ class PolicyPriorConfig:
 SSTEP_IMPLS = ("auto", "kernel", "packed", "reference")
 SSTEP_ADAM_ENTRIES = ("all", "trained")
 SSTEP_STATISTICS = ("auto", "epoch", "step")
+SSTEP_STATISTICS_EPOCHS = ("last", "all")
 
 
 @dataclass(frozen=True)
@@ -374,6 +375,12 @@ class SStepConfig:
         values up to the order of their sums, and the same weights. Per epoch a GMR step of one
         seed per GPU launches fewer kernels; with many seeds per GPU the kept weights cost more
         than that saves (benchmarks/RESULTS.md, twenty-second session).
+      statistics_epochs: the epochs whose statistics the S-step returns: "last" (the default:
+        training reads only the last epoch's loss, so the packed form runs the other epochs'
+        steps without any statistics, and the S-step's loss and aux entries are [1]) or "all"
+        (the loss curve, [epochs] entries, e.g. to watch a fit converge). The same weights
+        either way, and the same last-epoch values up to the order of their sums
+        (benchmarks/RESULTS.md, twenty-fourth session).
     """
 
     lr: float = 1e-3
@@ -390,11 +397,13 @@ class SStepConfig:
     unroll: int = 1
     adam_entries: str = "all"
     statistics: str = "auto"
+    statistics_epochs: str = "last"
 
     def __post_init__(self):
         check_choice("sstep.impl", self.impl, SSTEP_IMPLS)
         check_choice("sstep.adam_entries", self.adam_entries, SSTEP_ADAM_ENTRIES)
         check_choice("sstep.statistics", self.statistics, SSTEP_STATISTICS)
+        check_choice("sstep.statistics_epochs", self.statistics_epochs, SSTEP_STATISTICS_EPOCHS)
         for name in ("epochs", "batch_size", "unroll"):
             check_positive_int(f"sstep.{name}", getattr(self, name))
         for name in ("lr", "eps", "obs_std_floor", "weight_clip"):

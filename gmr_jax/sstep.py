@@ -155,13 +155,16 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
         round-off (tests/test_sstep.py).
     Returns:
       (params, metrics) with metrics:
-        loss: [epochs] mean objective (data term + β·Σθ²) over each epoch's minibatches, each
-          evaluated before its update;
-        data_loss: [epochs] the same without the L2 term;
-        aux: dict of [epochs], the per-epoch means of the policy loss's aux entries;
+        loss: [E] mean objective (data term + β·Σθ²) over each epoch's minibatches, each
+          evaluated before its update: E = 1, the last epoch's, with
+          ``cfg.statistics_epochs == "last"`` (the default), E = epochs with "all";
+        data_loss: [E] the same without the L2 term;
+        aux: dict of [E], the per-epoch means of the policy loss's aux entries;
         weights_ok: [] bool, the raw weights had a positive sum;
-        finite: [] bool, every loss and every parameter after the S-step is finite (a False must
-          stop the caller: the new params are unusable).
+        finite: [] bool, every returned loss and every parameter after the S-step is finite (a
+          False must stop the caller: the new params are unusable). A non-finite step before
+          the returned epochs leaves non-finite weights (Adam carries it in its moments), so
+          the parameters' check covers the epochs whose statistics are not returned.
     """
     impl = default_impl() if impl is None else impl
     if impl not in IMPLS:
@@ -236,10 +239,16 @@ def _schedule(train: SStepData, key, cfg: SStepConfig, noise_fn, dtype):
     return idx, noise, c1, c2
 
 
-def _epoch_means(cfg: SStepConfig, per_step):
-    """[steps] per-step values (a pytree) -> [epochs] means over each epoch's steps."""
+def _epoch_means(epochs: int, per_step):
+    """[steps] per-step values (a pytree) of ``epochs`` epochs -> [epochs] means over each
+    epoch's steps."""
     return jax.tree_util.tree_map(
-        lambda a: jnp.mean(a.reshape((cfg.epochs, -1) + a.shape[1:]), axis=1), per_step)
+        lambda a: jnp.mean(a.reshape((epochs, -1) + a.shape[1:]), axis=1), per_step)
+
+
+def _returned_epochs(cfg: SStepConfig, means):
+    """Per-epoch statistics [epochs] (a pytree) -> the ones ``cfg.statistics_epochs`` returns."""
+    return means if cfg.statistics_epochs == "all" else jax.tree_util.tree_map(lambda a: a[-1:], means)
 
 
 def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
@@ -259,7 +268,9 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     by side (a scatter of the updated entries into θ instead costs as much as it saves). Every
     trained entry sees the same arithmetic either way; only the L2 statistic sums in another
     order.
-    Returns (net, (loss [epochs], data_loss [epochs], aux)).
+    Returns (net, (loss [E], data_loss [E], aux)): E = epochs, or 1 with
+    ``cfg.statistics_epochs == "last"``, where the epochs before the last run their steps without
+    the statistics.
     """
     theta0 = form.pack(params)
     idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
@@ -295,6 +306,20 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         return stats
 
     zeros = jnp.zeros_like(w0)
+    nb = len(idx) // cfg.epochs
+    inputs = (idx, noise, c1, c2)
+    carry = (w0, zeros, zeros)
+    epochs = cfg.epochs
+    if cfg.statistics_epochs == "last" and epochs > 1:
+        # Only the last epoch's statistics are returned: the epochs before it take the step
+        # without them (the gradient alone).
+        def gradient_step(carry, inputs):
+            w_new, mu, nu, _, _ = update(*carry, *inputs)
+            return (w_new, mu, nu), None
+
+        head = jax.tree_util.tree_map(lambda a: a[:-nb], inputs)
+        carry, _ = lax.scan(gradient_step, carry, head, unroll=min(cfg.unroll, len(head[0])))
+        inputs, epochs = jax.tree_util.tree_map(lambda a: a[-nb:], inputs), 1
     if resolve_statistics(cfg.statistics, sharding.block_seeds(), sharding.target_platform()) == "step":
         def step(carry, inputs):
             w, mu, nu, l2 = carry
@@ -303,9 +328,9 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
             # so that the next step does not start with this sum (the same sum of the same weights)
             return (w_new, mu, nu, l2_penalty(w_new)), statistics(value, aux, l2)
 
-        (w, *_), stats = lax.scan(step, (w0, zeros, zeros, l2_penalty(w0)), (idx, noise, c1, c2),
-                                  unroll=min(cfg.unroll, len(idx)))
-        means = _epoch_means(cfg, stats)
+        (w, *_), stats = lax.scan(step, (*carry, l2_penalty(carry[0])), inputs,
+                                  unroll=min(cfg.unroll, len(inputs[0])))
+        means = _epoch_means(epochs, stats)
     else:
         # The loss value only feeds the statistics: a step computes the gradient alone (XLA drops
         # the rest) and keeps its weights; after the epoch one batched forward pass evaluates
@@ -319,32 +344,29 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
             (value, aux), _ = form.value_and_grad(params, expand(w), rows[i], eps)
             return statistics(value, aux, l2_penalty(w))
 
-        nb = len(idx) // cfg.epochs
-
         def epoch(carry, inputs):
             carry, ws = lax.scan(step, carry, inputs, unroll=min(cfg.unroll, nb))
             return carry, jnp.mean(jax.vmap(evaluate)(ws, inputs[0], inputs[1]), axis=0)
 
-        by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((cfg.epochs, nb) + a.shape[1:]),
-                                          (idx, noise, c1, c2))
-        (w, *_), means = lax.scan(epoch, (w0, zeros, zeros), by_epoch)
+        by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((epochs, nb) + a.shape[1:]), inputs)
+        (w, *_), means = lax.scan(epoch, carry, by_epoch)
     return form.unpack(params, expand(w)), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
 
 
 def _fit_kernel(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
     """The Adam loop as the policy's GPU kernel (``Policy.kernel``), on ``_schedule``'s steps.
-    Returns (net, (loss [epochs], data_loss [epochs], aux))."""
+    Returns (net, (loss [E], data_loss [E], aux)), E as ``_fit_packed``'s."""
     dtype = params.norm.scale.dtype
     idx, noise, c1, c2 = _schedule(train, key, cfg, policy.training.noise, dtype)
     net, per_step = policy.kernel(params, train, idx, noise, c1, c2, cfg)
-    return net, _epoch_means(cfg, per_step)
+    return net, _returned_epochs(cfg, _epoch_means(cfg.epochs, per_step))
 
 
 def _fit_reference(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
     """The Adam loop on autodiff of ``policy.loss``: a scan over epochs of scans over minibatches,
     gathering each field and drawing the loss's random numbers inside the loop (the S-step's
     first form, kept as the reference of "packed" and for policies without a TrainingForm).
-    Returns (net, (loss [epochs], data_loss [epochs], aux))."""
+    Returns (net, (loss [E], data_loss [E], aux)), E as ``_fit_packed``'s."""
     B = train.x.shape[0]
     bs = cfg.batch_size
     nb = B // bs
@@ -382,4 +404,4 @@ def _fit_reference(policy: Policy, params: PolicyParams, train: SStepData, key, 
     # Fresh optimiser state at every S-step (the authors' practice); parameters are warm-started.
     carry = (flat0, opt.init(flat0))
     (flat, _), means = lax.scan(epoch, carry, _epoch_keys(key, cfg))
-    return unravel(flat), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
+    return unravel(flat), _returned_epochs(cfg, jax.tree_util.tree_unflatten(stats_def[-1], list(means.T)))

@@ -3,6 +3,7 @@ closed-form variance, jit/vmap consistency and dtypes; the packed form against t
 form and GMR's kernel form against the packed form (same minibatches, noise and loss; equal to
 round-off), Adam against optax, packing."""
 
+import dataclasses
 import functools
 
 import jax
@@ -151,7 +152,7 @@ def test_objective_equals_numpy_and_nan_flag(policy, impl):
 def test_fits_linear_gaussian_teacher(policy):
     data, (K, k) = _teacher(0)
     params = policy.init(jax.random.key(0), dX, dU)
-    cfg = SStepConfig(epochs=100, batch_size=20, lr=1e-2, weight_decay=0.0)
+    cfg = SStepConfig(epochs=100, batch_size=20, lr=1e-2, weight_decay=0.0, statistics_epochs="all")
     new, metrics = _sstep(policy, params, data, jax.random.key(1), cfg)
     assert metrics["loss"].shape == (100,)
     assert float(metrics["loss"][-1]) < 1e-3 * float(metrics["loss"][0])
@@ -483,11 +484,42 @@ def test_statistics_per_epoch_equal_those_of_every_step(name):
     noise, so the same S-step up to how XLA fuses and sums the two programs; tolerance from the
     computation, as in ``test_adam_on_trained_entries_takes_the_same_steps``. Every epoch's
     metrics are compared, not only the last."""
-    got, _ = _packed_variant_agrees(name, SStepConfig(epochs=3, batch_size=20, statistics="step"),
-                                    SStepConfig(epochs=3, batch_size=20, statistics="epoch"))
+    got, _ = _packed_variant_agrees(name, SStepConfig(epochs=3, batch_size=20, statistics="step", statistics_epochs="all"),
+                                    SStepConfig(epochs=3, batch_size=20, statistics="epoch", statistics_epochs="all"))
     assert got[1]["loss"].shape == (3,) and len(set(np.asarray(got[1]["loss"]).tolist())) == 3
     with pytest.raises(ValueError, match="sstep.statistics"):
         SStepConfig(statistics="never")
+
+
+@pytest.mark.parametrize("name", ["mlp", "gmr"])
+@pytest.mark.parametrize("statistics", ["step", "epoch"])
+def test_last_epoch_statistics_equal_the_last_of_all(name, statistics):
+    """``SStepConfig.statistics_epochs="last"`` (the epochs before the last take their steps
+    without statistics, in a loop of their own) against "all": the same steps on the same
+    weights, so the same weights and the same last-epoch statistics up to how XLA fuses the two
+    programs (tolerance from the computation, as in
+    ``test_adam_on_trained_entries_takes_the_same_steps``), each statistic as a [1] array."""
+    pol, _ = _policy(name)
+    data = _full_data(12)
+    params = pol.init(jax.random.key(2), dX, dU)
+    cfg = SStepConfig(epochs=3, batch_size=20, statistics=statistics, statistics_epochs="all")
+    (ref_params, ref_m), tol = measured_tol(
+        lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg, impl="packed"), (params, data), SAFETY)
+    assert_tolerances_small((ref_params, ref_m), tol, 1e-6)
+    last = lambda tree: jax.tree_util.tree_map(lambda a: a[-1:] if a.ndim else a, tree)  # noqa: E731
+    got_params, got_m = _sstep(pol, params, data, jax.random.key(3),
+                               dataclasses.replace(cfg, statistics_epochs="last"), impl="packed")
+    assert got_m["loss"].shape == (1,) and jax.tree_util.tree_all(
+        jax.tree_util.tree_map(lambda a: a.shape == (1,), got_m["aux"]))
+    assert_trees_within((got_params, got_m), (ref_params, last(ref_m)), tol)  # one tolerance per leaf
+    assert bool(got_m["finite"])
+    # the reference form returns the last epoch of its curve
+    ref_all = _sstep(pol, params, data, jax.random.key(3), cfg, impl="reference")[1]
+    ref_last = _sstep(pol, params, data, jax.random.key(3), dataclasses.replace(cfg, statistics_epochs="last"),
+                      impl="reference")[1]
+    assert_trees_within(ref_last, last(ref_all), 0.0)
+    with pytest.raises(ValueError, match="sstep.statistics_epochs"):
+        SStepConfig(statistics_epochs="first")
 
 
 # ------------------------------------------------ the kernel form against the packed form
