@@ -376,11 +376,13 @@ class SStepConfig:
         seed per GPU launches fewer kernels; with many seeds per GPU the kept weights cost more
         than that saves (benchmarks/RESULTS.md, twenty-second session).
       statistics_epochs: the epochs whose statistics the S-step returns: "last" (the default:
-        training reads only the last epoch's loss, so the packed form runs the other epochs'
-        steps without any statistics, and the S-step's loss and aux entries are [1]) or "all"
-        (the loss curve, [epochs] entries, e.g. to watch a fit converge). The same weights
-        either way, and the same last-epoch values up to the order of their sums
-        (benchmarks/RESULTS.md, twenty-fourth session).
+        training reads only the last epoch's loss; the S-step's loss and aux entries are then
+        [1], and the packed form computes no statistics in its steps: each step keeps its
+        weights in a buffer of one epoch, evaluated once after the loop, whatever
+        ``statistics`` says) or "all" (the loss curve, [epochs] entries, e.g. to watch a fit
+        converge; ``statistics`` says how). The same weights either way, and the same
+        last-epoch values up to the order of their sums (benchmarks/RESULTS.md, twenty-fourth
+        session).
     """
 
     lr: float = 1e-3

@@ -269,8 +269,9 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     trained entry sees the same arithmetic either way; only the L2 statistic sums in another
     order.
     Returns (net, (loss [E], data_loss [E], aux)): E = epochs, or 1 with
-    ``cfg.statistics_epochs == "last"``, where the epochs before the last run their steps without
-    the statistics.
+    ``cfg.statistics_epochs == "last"``, where no step computes statistics: the steps keep their
+    weights in a buffer of one epoch, and one evaluation after the loop gives the last epoch's
+    (whatever ``cfg.statistics``).
     """
     theta0 = form.pack(params)
     idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
@@ -307,20 +308,31 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
 
     zeros = jnp.zeros_like(w0)
     nb = len(idx) // cfg.epochs
-    inputs = (idx, noise, c1, c2)
-    carry = (w0, zeros, zeros)
-    epochs = cfg.epochs
-    if cfg.statistics_epochs == "last" and epochs > 1:
-        # Only the last epoch's statistics are returned: the epochs before it take the step
-        # without them (the gradient alone).
-        def gradient_step(carry, inputs):
-            w_new, mu, nu, _, _ = update(*carry, *inputs)
-            return (w_new, mu, nu), None
 
-        head = jax.tree_util.tree_map(lambda a: a[:-nb], inputs)
-        carry, _ = lax.scan(gradient_step, carry, head, unroll=min(cfg.unroll, len(head[0])))
-        inputs, epochs = jax.tree_util.tree_map(lambda a: a[-nb:], inputs), 1
-    if resolve_statistics(cfg.statistics, sharding.block_seeds(), sharding.target_platform()) == "step":
+    def evaluate_epoch(ws, i, eps):
+        """The mean statistics of one epoch's steps from their kept weights ws [nb, n], each on
+        its own weights, minibatch i [nb, bs] and noise eps (one batched forward pass)."""
+        def evaluate(w, i, eps):
+            (value, aux), _ = form.value_and_grad(params, expand(w), rows[i], eps)
+            return statistics(value, aux, l2_penalty(w))
+        return jnp.mean(jax.vmap(evaluate)(ws, i, eps), axis=0)
+
+    if cfg.statistics_epochs == "last":
+        # One loop over every step without statistics (the gradient alone; XLA drops the loss's
+        # other parts). Each step writes its weights into a buffer of one epoch's steps, which
+        # after the loop holds the last epoch's: one evaluation of them gives its statistics.
+        def step(carry, inputs):
+            w, mu, nu, kept = carry
+            j, *rest = inputs
+            w_new, mu, nu, _, _ = update(w, mu, nu, *rest)
+            return (w_new, mu, nu, lax.dynamic_update_index_in_dim(kept, w, j, 0)), None
+
+        slot = jnp.arange(len(idx), dtype=jnp.int32) % nb
+        kept0 = jnp.zeros((nb,) + w0.shape, w0.dtype)
+        (w, _, _, kept), _ = lax.scan(step, (w0, zeros, zeros, kept0), (slot, idx, noise, c1, c2),
+                                      unroll=min(cfg.unroll, len(idx)))
+        means = evaluate_epoch(kept, idx[-nb:], None if noise is None else noise[-nb:])[None]
+    elif resolve_statistics(cfg.statistics, sharding.block_seeds(), sharding.target_platform()) == "step":
         def step(carry, inputs):
             w, mu, nu, l2 = carry
             w_new, mu, nu, value, aux = update(w, mu, nu, *inputs)
@@ -328,28 +340,25 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
             # so that the next step does not start with this sum (the same sum of the same weights)
             return (w_new, mu, nu, l2_penalty(w_new)), statistics(value, aux, l2)
 
-        (w, *_), stats = lax.scan(step, (*carry, l2_penalty(carry[0])), inputs,
-                                  unroll=min(cfg.unroll, len(inputs[0])))
-        means = _epoch_means(epochs, stats)
+        (w, *_), stats = lax.scan(step, (w0, zeros, zeros, l2_penalty(w0)), (idx, noise, c1, c2),
+                                  unroll=min(cfg.unroll, len(idx)))
+        means = _epoch_means(cfg.epochs, stats)
     else:
         # The loss value only feeds the statistics: a step computes the gradient alone (XLA drops
         # the rest) and keeps its weights; after the epoch one batched forward pass evaluates
-        # all of its steps, each on its own weights, minibatch and noise.
+        # all of its steps.
         def step(carry, inputs):
             w, mu, nu = carry
             w_new, mu, nu, _, _ = update(w, mu, nu, *inputs)
             return (w_new, mu, nu), w
 
-        def evaluate(w, i, eps):
-            (value, aux), _ = form.value_and_grad(params, expand(w), rows[i], eps)
-            return statistics(value, aux, l2_penalty(w))
-
         def epoch(carry, inputs):
             carry, ws = lax.scan(step, carry, inputs, unroll=min(cfg.unroll, nb))
-            return carry, jnp.mean(jax.vmap(evaluate)(ws, inputs[0], inputs[1]), axis=0)
+            return carry, evaluate_epoch(ws, inputs[0], inputs[1])
 
-        by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((epochs, nb) + a.shape[1:]), inputs)
-        (w, *_), means = lax.scan(epoch, carry, by_epoch)
+        by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((cfg.epochs, nb) + a.shape[1:]),
+                                          (idx, noise, c1, c2))
+        (w, *_), means = lax.scan(epoch, (w0, zeros, zeros), by_epoch)
     return form.unpack(params, expand(w)), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
 
 
