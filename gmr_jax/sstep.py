@@ -269,9 +269,10 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     trained entry sees the same arithmetic either way; only the L2 statistic sums in another
     order.
     Returns (net, (loss [E], data_loss [E], aux)): E = epochs, or 1 with
-    ``cfg.statistics_epochs == "last"``, where no step computes statistics: the steps keep their
-    weights in a buffer of one epoch, and one evaluation after the loop gives the last epoch's
-    (whatever ``cfg.statistics``).
+    ``cfg.statistics_epochs == "last"``. Then, with the statistics per epoch, no step computes
+    them: the steps keep their weights in a buffer of one epoch, and one evaluation after the
+    loop gives the last epoch's; with the statistics per step (many seeds per GPU, where that
+    buffer's traffic costs more than the statistics), every step computes them as with "all".
     """
     theta0 = form.pack(params)
     idx, noise, c1, c2 = _schedule(train, key, cfg, form.noise, theta0.dtype)
@@ -317,7 +318,8 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
             return statistics(value, aux, l2_penalty(w))
         return jnp.mean(jax.vmap(evaluate)(ws, i, eps), axis=0)
 
-    if cfg.statistics_epochs == "last":
+    per_step = resolve_statistics(cfg.statistics, sharding.block_seeds(), sharding.target_platform()) == "step"
+    if cfg.statistics_epochs == "last" and not per_step:
         # One loop over every step without statistics (the gradient alone; XLA drops the loss's
         # other parts). Each step writes its weights into a buffer of one epoch's steps, which
         # after the loop holds the last epoch's: one evaluation of them gives its statistics.
@@ -332,7 +334,7 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         (w, _, _, kept), _ = lax.scan(step, (w0, zeros, zeros, kept0), (slot, idx, noise, c1, c2),
                                       unroll=min(cfg.unroll, len(idx)))
         means = evaluate_epoch(kept, idx[-nb:], None if noise is None else noise[-nb:])[None]
-    elif resolve_statistics(cfg.statistics, sharding.block_seeds(), sharding.target_platform()) == "step":
+    elif per_step:  # (with statistics_epochs "last" too: the buffer would cost more than they do)
         def step(carry, inputs):
             w, mu, nu, l2 = carry
             w_new, mu, nu, value, aux = update(w, mu, nu, *inputs)
@@ -359,7 +361,7 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((cfg.epochs, nb) + a.shape[1:]),
                                           (idx, noise, c1, c2))
         (w, *_), means = lax.scan(epoch, (w0, zeros, zeros), by_epoch)
-    return form.unpack(params, expand(w)), jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
+    return form.unpack(params, expand(w)), _returned_epochs(cfg, jax.tree_util.tree_unflatten(stats_def[-1], list(means.T)))
 
 
 def _fit_kernel(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
