@@ -380,7 +380,7 @@ class SStepConfig:
         [1]) or "all" (the loss curve, [epochs] entries, e.g. to watch a fit converge). Where
         the packed form evaluates the statistics per epoch (``statistics``), "last" computes
         none in the steps: each step keeps its weights in a buffer of one epoch, evaluated once
-        after the loop (on an H100 one seed's GMR step 5–7 % faster; with many seeds per GPU,
+        after the loop (on an H100 one seed's GMR step 6–8 % faster; with many seeds per GPU,
         where the statistics stay in every step, that buffer would cost more than it saves).
         The same weights either way, and the same last-epoch values up to the order of their
         sums (benchmarks/RESULTS.md, twenty-fourth session).
