@@ -429,7 +429,8 @@ def test_sstep_fits_linear_gaussian_teacher(impl):
         return 0.5 * np.mean(np.einsum("bi,ij,bj->b", du, P, du))
 
     params, metrics = jax.jit(sstep, static_argnums=(0, 4), static_argnames="impl")(
-        make_gmr(CFG).policy, params0, data, jax.random.key(23), SStepConfig(epochs=60), impl=impl)
+        make_gmr(CFG).policy, params0, data, jax.random.key(23), SStepConfig(epochs=60, statistics_epochs="all"),
+        impl=impl)
     assert bool(metrics["finite"])
     before, after = controller_kl(params0), controller_kl(params)
     e0, e1 = test_time_action_error(params0), test_time_action_error(params)
