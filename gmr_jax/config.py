@@ -376,14 +376,14 @@ class SStepConfig:
         seed per GPU launches fewer kernels; with many seeds per GPU the kept weights cost more
         than that saves (benchmarks/RESULTS.md, twenty-second session).
       statistics_epochs: the epochs whose statistics the S-step returns: "last" (the default:
-        training reads only the last epoch's loss; the S-step's loss and aux entries are then
-        [1]) or "all" (the loss curve, [epochs] entries, e.g. to watch a fit converge). Where
+        training reads only the last epoch's loss; the S-step's loss, data loss and aux entries
+        are then [1]) or "all" (the loss curve, [epochs] entries, e.g. to watch a fit converge). Where
         the packed form evaluates the statistics per epoch (``statistics``), "last" computes
         none in the steps: each step keeps its weights in a buffer of one epoch, evaluated once
         after the loop (on an H100 one seed's GMR step 6–8 % faster; with many seeds per GPU,
         where the statistics stay in every step, that buffer would cost more than it saves).
-        The same weights either way, and the same last-epoch values up to the order of their
-        sums (benchmarks/RESULTS.md, twenty-fourth session).
+        The same weights and last-epoch values either way up to round-off (the order of their
+        sums; bit-identical on an H100, benchmarks/RESULTS.md, twenty-fourth session).
     """
 
     lr: float = 1e-3

@@ -162,9 +162,11 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
         aux: dict of [E], the per-epoch means of the policy loss's aux entries;
         weights_ok: [] bool, the raw weights had a positive sum;
         finite: [] bool, every returned loss and every parameter after the S-step is finite (a
-          False must stop the caller: the new params are unusable). A non-finite step before
-          the returned epochs leaves non-finite weights (Adam carries it in its moments), so
-          the parameters' check covers the epochs whose statistics are not returned.
+          False must stop the caller: the new params are unusable). A non-finite gradient
+          before the returned epochs leaves non-finite weights (Adam carries it in its
+          moments), so the parameters' check covers those epochs' steps; a non-finite loss
+          value with a finite gradient there (e.g. a non-finite per-row constant in rows that
+          the last epoch's shuffle leaves out) shows only with ``statistics_epochs="all"``.
     """
     impl = default_impl() if impl is None else impl
     if impl not in IMPLS:
@@ -259,7 +261,8 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     minibatch's random numbers and Adam's bias corrections (``_schedule``). The loop body is then
     the gather, ``form.value_and_grad``, the L2 term and Adam; the statistics (loss and aux, which
     the gradient does not need) are evaluated inside each step or per epoch from the epoch's
-    kept weights (``cfg.statistics``).
+    kept weights (``cfg.statistics``), or, for the last epoch only (``cfg.statistics_epochs``),
+    once after the loop.
 
     With ``cfg.adam_entries == "trained"`` (and a ``form.trained``), the loop carries only the
     trained entries w and Adam's moments of them: θ is formed from w each step by one gather
@@ -311,7 +314,7 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     nb = len(idx) // cfg.epochs
 
     def evaluate_epoch(ws, i, eps):
-        """The mean statistics of one epoch's steps from their kept weights ws [nb, n], each on
+        """The mean statistics of one epoch's steps from their kept weights ws [nb, len(w0)], each on
         its own weights, minibatch i [nb, bs] and noise eps (one batched forward pass)."""
         def evaluate(w, i, eps):
             (value, aux), _ = form.value_and_grad(params, expand(w), rows[i], eps)

@@ -356,7 +356,9 @@ def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype, run=_sstep):
     wide = jnp.dtype(dtype) == jnp.float64
     data = jax.tree_util.tree_map(lambda a: a.astype(dtype), _full_data(12 if wide else 13))
     params = pol.init(jax.random.key(2), dX, dU, dtype)
-    scfg = SStepConfig(epochs=3, batch_size=20, unroll=2) if wide else SStepConfig(epochs=2, batch_size=20)
+    # every epoch's statistics, so that the forms' curves are compared, not only their last epochs
+    scfg = (SStepConfig(epochs=3, batch_size=20, unroll=2, statistics_epochs="all") if wide
+            else SStepConfig(epochs=2, batch_size=20, statistics_epochs="all"))
     ref, ref_m = run(pol, params, data, jax.random.key(3), scfg, impl=ref_impl)
     new, new_m = run(pol, params, data, jax.random.key(3), scfg, impl=new_impl)
     delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(dtype)]
@@ -491,18 +493,20 @@ def test_statistics_per_epoch_equal_those_of_every_step(name):
         SStepConfig(statistics="never")
 
 
-@pytest.mark.parametrize("name", ["mlp", "gmr"])
-@pytest.mark.parametrize("statistics", ["step", "epoch"])
-def test_last_epoch_statistics_equal_the_last_of_all(name, statistics):
-    """``SStepConfig.statistics_epochs="last"`` (the epochs before the last take their steps
-    without statistics, in a loop of their own) against "all": the same steps on the same
-    weights, so the same weights and the same last-epoch statistics up to how XLA fuses the two
-    programs (tolerance from the computation, as in
-    ``test_adam_on_trained_entries_takes_the_same_steps``), each statistic as a [1] array."""
+@pytest.mark.parametrize("name,statistics,extra", [
+    ("mlp", "step", {}), ("gmr", "step", {}), ("mlp", "epoch", {}), ("gmr", "epoch", {}),
+    ("gmr", "epoch", {"unroll": 2, "adam_entries": "trained"})])
+def test_last_epoch_statistics_equal_the_last_of_all(name, statistics, extra):
+    """``SStepConfig.statistics_epochs="last"`` against "all": with the statistics per epoch
+    (the buffer of one epoch's weights, evaluated after the loop; also unrolled, with Adam on the
+    trained entries) and per step (the last epoch sliced). The same steps on the same weights,
+    so the same weights and the same last-epoch statistics up to how XLA fuses the two programs
+    (tolerance from the computation, as in ``test_adam_on_trained_entries_takes_the_same_steps``),
+    each statistic as a [1] array."""
     pol, _ = _policy(name)
     data = _full_data(12)
     params = pol.init(jax.random.key(2), dX, dU)
-    cfg = SStepConfig(epochs=3, batch_size=20, statistics=statistics, statistics_epochs="all")
+    cfg = SStepConfig(epochs=3, batch_size=20, statistics=statistics, statistics_epochs="all", **extra)
     (ref_params, ref_m), tol = measured_tol(
         lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg, impl="packed"), (params, data), SAFETY)
     assert_tolerances_small((ref_params, ref_m), tol, 1e-6)
