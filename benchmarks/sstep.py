@@ -15,8 +15,9 @@ times the packed form with Adam over the whole packed vector and over its traine
 (``SStepConfig.adam_entries``) in the same run, ``--statistics epoch,step`` with the loss's
 statistics evaluated per epoch from the kept weights and inside every step
 (``SStepConfig.statistics``), ``--statistics-epochs last,all`` with the statistics of the last
-epoch only and of every epoch (``SStepConfig.statistics_epochs``). ``--profile DIR`` adds the GPU's view (``benchmarks.trace``): kernels per
-Adam step, the device's busy and idle time, the costliest kernels.
+epoch only and of every epoch (``SStepConfig.statistics_epochs``). ``--profile DIR`` adds the
+GPU's view (``benchmarks.trace``): kernels per Adam step, the device's busy and idle time, the
+costliest kernels.
 
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
 the default on a GPU; the benchmark's default) beside the reference form it is tested against

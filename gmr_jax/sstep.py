@@ -364,7 +364,8 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
         by_epoch = jax.tree_util.tree_map(lambda a: a.reshape((cfg.epochs, nb) + a.shape[1:]),
                                           (idx, noise, c1, c2))
         (w, *_), means = lax.scan(epoch, (w0, zeros, zeros), by_epoch)
-    return form.unpack(params, expand(w)), _returned_epochs(cfg, jax.tree_util.tree_unflatten(stats_def[-1], list(means.T)))
+    means = jax.tree_util.tree_unflatten(stats_def[-1], list(means.T))
+    return form.unpack(params, expand(w)), _returned_epochs(cfg, means)
 
 
 def _fit_kernel(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):

@@ -95,7 +95,8 @@ def test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one(whole,
 
 def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, tmp_path):
     """``iteration_programs="parts"``: each group of ``runner.ITERATION_PARTS`` compiled as a
-    program of its own (the groups in parallel threads), called in turn by the training loop. The parts equal the whole iteration to round-off (tested against measured tolerances in
+    program of its own (the groups in parallel threads), called in turn by the training loop.
+    The parts equal the whole iteration to round-off (tested against measured tolerances in
     ``test_mdgps.py``); here, the whole runner: every metric within 1e-6 of its array's scale (on
     the CPU the two differ by about 1e-15 relative, and ε-perturbed inputs move one iteration's
     outputs by at most 5e-9 of their scale, test_mdgps.py), integer and boolean metrics equal."""
