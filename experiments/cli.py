@@ -92,14 +92,18 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "and share the device (default 0: all of them)")
     p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
                    help="programs (iterations, evaluations) compiled at once (default: %(default)s; an iteration "
-                        "in parts, --iteration-programs, counts as one and compiles its six parts in "
+                        "in parts, --iteration-programs, counts as one and compiles its seven parts in "
                         "parallel). XLA spreads one compilation over the cores, so more at once mostly slow "
                         "each other")
     p.add_argument("--iteration-programs", default="auto", choices=runner.ITERATION_PROGRAMS,
-                   help="compile each run's iteration as one program (whole) or as the programs of its "
-                        "parts, which compile in parallel (parts); default "
-                        "%(default)s: parts for the policy runs on a GPU (runner.ITERATION_PARTS; "
-                        "benchmarks/RESULTS.md, twenty-third session); the choice is written to config.json")
+                   help="compile each run's iteration as one program (whole), as the programs of its "
+                        "parts, which compile in parallel (parts), or as parts of which the C MuJoCo "
+                        "rollouts and the C-step run on the host's CPU (split; for one seed on one "
+                        "device, else parts). Default %(default)s: for the policy runs on a GPU, split "
+                        "for one seed with the C MuJoCo backend, else parts; parts for the policy runs "
+                        "in processes of their own on the host (runner.ITERATION_PARTS, "
+                        "runner.HOST_PARTS; benchmarks/RESULTS.md, twenty-third and twenty-fifth "
+                        "sessions); the choice is written to config.json")
     p.add_argument("--autotune", action="store_true",
                    help="let XLA time kernel variants on the GPU while compiling. Off by default: "
                         "runs that compile while others train make those timings slow and noisy, "
@@ -152,6 +156,17 @@ def parse_overrides(p: argparse.ArgumentParser, items: list[str]) -> dict:
             value = text  # a bare word, e.g. --set gmr__exploration=fixed
         out[name.strip()] = value
     return out
+
+
+def _iteration_programs(args, scenario: str, algorithm: str, cfg, used) -> str:
+    """How run (scenario, algorithm) compiles its iteration (``runner.iteration_programs_for``
+    of ``--iteration-programs``, for a run in a process of its own as that process resolves it)."""
+    where = args.platforms.get((scenario, algorithm), used[0].platform)
+    choice = args.iteration_programs
+    if (scenario, algorithm) in args.platforms and args.cpu_runs_in_process:
+        choice = runner.in_process_iteration_programs(choice, cfg)
+    return runner.iteration_programs_for(choice, cfg, where, args.seeds,
+                                         len(used) if where == used[0].platform else 1)
 
 
 def resolve_backend(args, task: tasks.Task) -> str:
@@ -413,10 +428,10 @@ def run_study(args, t_start: float) -> int:
         "sstep_statistics": {f"{s}/{a}": sstep.resolve_statistics(
             c.sstep.statistics, sharding.seeds_per_device(args.seeds, len(used)),
             args.platforms.get((s, a), used[0].platform)) for (s, a), c in args.configs.items()},
-        # per run: its iteration compiled as one program or in parts (--iteration-programs)
-        "iteration_programs": {f"{s}/{a}": runner.iteration_programs_for(
-            args.iteration_programs, c, args.platforms.get((s, a), used[0].platform))
-            for (s, a), c in args.configs.items()},
+        # per run: its iteration compiled as one program, in parts, or in parts some of which run
+        # on the host (--iteration-programs)
+        "iteration_programs": {f"{s}/{a}": _iteration_programs(args, s, a, c, used)
+                               for (s, a), c in args.configs.items()},
         "cpu_runs": on_cpu,
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         "host_cpu": host_cpu(),
@@ -440,7 +455,7 @@ def run_study(args, t_start: float) -> int:
             plotting.result()
             report.plot_all(out, args.configs, runs)
     results = report.write_results(out, args.configs, runs, seeds, device, total,
-                                   command_s=time.perf_counter() - t_start)
+                                   command_s=time.perf_counter() - t_start, start_s=t_runs - t_start)
     report.write_summary(out / "summary.md", args.configs, runs, seeds, device, total, results)
     print((out / "summary.md").read_text())
     write_pictures(args, out)

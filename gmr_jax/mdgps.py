@@ -470,16 +470,21 @@ def _catch_up_part(cfg: Config, c: dict, first: Array) -> dict:
     return {"params": params, "catch_up_ok": ok}
 
 
+def _anchor_part(cfg: Config, c: dict, first: Array) -> dict:
+    """The KL anchor: the policy linearised at the samples (``linearization_stage``)."""
+    policy, anchor = linearization_stage(cfg, c["state"], c["params"], c["samples"], stage_keys(c["key"])[2])
+    return {"policy": policy, "anchor": anchor}
+
+
 def _cstep_part(cfg: Config, c: dict, first: Array) -> dict:
-    """The KL anchor (policy linearisation), the step size and the C-step."""
-    state = c["state"]
-    policy, anchor = linearization_stage(cfg, state, c["params"], c["samples"], stage_keys(c["key"])[2])
+    """The step size and the C-step."""
+    state, anchor = c["state"], c["anchor"]
     model = LocalModel(anchor=anchor, dyn=c["dyn"], cost=c["cost"], sample_cost=jnp.mean(c["sample_costs"], axis=-1))
     step_mult, predicted, actual = _stage(cfg, "step_size", step_size.update)(
         cfg.step, state.step_mult, first, state.prev, state.traj, model)
     traj, marginals, eta, kl, epsilon, info = _stage(cfg, "cstep", c_step)(
         cfg, c["dyn"], c["cost"], anchor, state.eta, step_mult)
-    return {"policy": policy, "model": model, "step_mult": step_mult, "predicted": predicted, "actual": actual,
+    return {"model": model, "step_mult": step_mult, "predicted": predicted, "actual": actual,
             "traj": traj, "marginals": marginals, "eta": eta, "kl": kl, "epsilon": epsilon, "info": info}
 
 
@@ -510,7 +515,7 @@ def _curve_part(cfg: Config, c: dict, first: Array) -> dict:
 
 
 ITERATION_PARTS = {"rollouts": _rollouts_part, "model": _model_part, "catch_up": _catch_up_part,
-                   "cstep": _cstep_part, "sstep": _sstep_part, "curve": _curve_part}
+                   "anchor": _anchor_part, "cstep": _cstep_part, "sstep": _sstep_part, "curve": _curve_part}
 """The parts of an iteration in their order (``update``: all but the first and the last)."""
 
 _UPDATE_PARTS = tuple(ITERATION_PARTS)[1:-1]

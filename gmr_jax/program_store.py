@@ -63,8 +63,10 @@ def code_version() -> str:
     return h.hexdigest()
 
 
-def _abstract(leaf) -> jax.ShapeDtypeStruct:
-    return jax.ShapeDtypeStruct(tuple(leaf.shape), leaf.dtype)
+def abstract(tree):
+    """Arrays or shapes → their shapes (``jax.ShapeDtypeStruct``) without placement: lowered
+    for the default device."""
+    return jax.tree_util.tree_map(lambda leaf: jax.ShapeDtypeStruct(tuple(leaf.shape), leaf.dtype), tree)
 
 
 def export_platform(platform: str) -> str:
@@ -188,7 +190,7 @@ class ProgramStore:
         reading or exporting the module counts as ``{prefix}trace_s``, lowering it as
         ``{prefix}lower_s``."""
         leaves, in_tree = jax.tree_util.tree_flatten(args)
-        avals = [_abstract(leaf) for leaf in leaves]
+        avals = abstract(leaves)
         key = program_key(name, cfg, args, platform)
         if self._path(key, ".none").exists():
             return None

@@ -171,18 +171,29 @@ def switch_interval(seconds: float | None):
         sys.setswitchinterval(before)
 
 
-ITERATION_PROGRAMS = ("auto", "whole", "parts")
+ITERATION_PROGRAMS = ("auto", "whole", "parts", "split")
 """How the runner compiles a run's iteration (``Scheduler.iteration_programs``): "whole" as one
 program (``mdgps.iteration``); "parts" as the programs of ``ITERATION_PARTS``, traced one after
-the other and compiled in parallel threads; "auto": parts for the runs of a policy on a GPU,
-whole elsewhere."""
+the other and compiled in parallel threads; "split" as "parts", with the groups of ``HOST_PARTS``
+compiled for and run on the host's CPU (for a run of one seed on one device; others run in
+parts); "auto": for the runs of a policy on a GPU, split for one seed on one device with the C
+MuJoCo backend, else parts; for a policy's run in a process of its own on the host
+(:func:`run_in_process`), parts; whole elsewhere."""
 
-ITERATION_PARTS = (("rollouts",), ("model",), ("catch_up",), ("cstep",), ("sstep",), ("curve",))
+ITERATION_PARTS = (("rollouts",), ("model",), ("catch_up",), ("anchor",), ("cstep",), ("sstep",), ("curve",))
 """The groups of ``mdgps.ITERATION_PARTS`` that the runner compiles as programs of their own
 (``iteration_programs`` "parts"): every part alone, so that the first iteration's catch-up
 S-step compiles apart from the S-step, and the parts with host callbacks (the C MuJoCo
 rollouts) apart from those that a ``ProgramStore`` can keep (benchmarks/RESULTS.md,
 twenty-third session)."""
+
+HOST_PARTS = (("rollouts",), ("cstep",), ("curve",))
+"""The groups of ``ITERATION_PARTS`` that ``iteration_programs`` "split" runs on the host's CPU:
+the C MuJoCo rollouts (host callbacks; the learning curve's policy makes one per control step,
+and on a GPU each holds its one compute stream, which the other runs' S-steps wait for) and the
+step size with the C-step (small sequential factorisations). The dynamics fit and the policy's
+linearisation stay on the GPU: on the host they take many times longer (one GMR seed on an H100
+machine, benchmarks/RESULTS.md, twenty-fifth session)."""
 
 
 def _check_iteration_programs(choice: str) -> None:
@@ -190,13 +201,19 @@ def _check_iteration_programs(choice: str) -> None:
         raise ValueError(f"iteration_programs: {choice!r} is not one of {', '.join(ITERATION_PROGRAMS)}")
 
 
-def iteration_programs_for(choice: str, cfg: config.Config, platform: str) -> str:
-    """"whole" or "parts": ``choice`` (one of ``ITERATION_PROGRAMS``) for a run of ``cfg`` on
-    ``platform``."""
+def iteration_programs_for(choice: str, cfg: config.Config, platform: str, num_seeds: int = 1,
+                           devices: int = 1) -> str:
+    """"whole", "parts" or "split": ``choice`` (one of ``ITERATION_PROGRAMS``) for a run of
+    ``cfg`` with ``num_seeds`` seeds on ``devices`` devices of ``platform``."""
     _check_iteration_programs(choice)
+    one = num_seeds == 1 and devices == 1
+    if choice == "split":
+        return "split" if one else "parts"
     if choice != "auto":
         return choice
-    return "parts" if platform == "gpu" and policies.spec_for(cfg) is not None else "whole"
+    if platform != "gpu" or policies.spec_for(cfg) is None:
+        return "whole"
+    return "split" if one and cfg.sim.backend == "mujoco" else "parts"
 
 
 class Scheduler:
@@ -387,8 +404,11 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
         return scheduler.programs[name]
     prefix = _TIMER_PREFIX[kind]
     with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
-        if kind == "step" and iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh)) == "parts":
-            return _lowered_parts(cfg, args, timer, scheduler, mesh)
+        mode = iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh), name[2], mesh.size)
+        if kind == "step" and mode != "whole":
+            host = scheduler.mesh_for("cpu") if mode == "split" else mesh
+            return _lowered_parts(cfg, args, timer, scheduler,
+                                  tuple(host if names in HOST_PARTS else mesh for names in ITERATION_PARTS))
         return _traced_and_lowered(kind, _program(kind, mesh), cfg, args, timer, scheduler, mesh, prefix)
 
 
@@ -432,36 +452,55 @@ def _compile_options(num_seeds: int, mesh) -> dict | None:
 
 class _PartsStep:
     """An iteration's compiled parts (``ITERATION_PARTS``), called as its whole program:
-    ``step(state, keys, first) -> (new state, metrics)``."""
+    ``step(state, keys, first) -> (new state, metrics)``. ``devices``: the one device each part
+    runs on, or None where every part runs on its arguments' devices. With devices, each carry
+    entry is copied to a part's device the first time a part there reads it (transfers are
+    asynchronous, as the parts are), and the result is copied to ``home``, the run's device."""
 
-    def __init__(self, programs):
+    def __init__(self, programs, devices=None, home=None):
         self.programs = tuple(programs)
+        self.devices = None if devices is None else tuple(devices)
+        self.home = home
 
     def __call__(self, state, keys, first):
         carry = {"state": state, "key": keys}
-        for program in self.programs:
-            carry.update(program(carry, first))
-        return mdgps.iteration_result(carry)
+        if self.devices is None:
+            for program in self.programs:
+                carry.update(program(carry, first))
+            return mdgps.iteration_result(carry)
+        placed: dict = {}
+        for program, device in zip(self.programs, self.devices, strict=True):
+            for k, v in carry.items():
+                if (k, device) not in placed:
+                    placed[k, device] = jax.device_put(v, device)
+            carry.update(program({k: placed[k, device] for k in carry}, jax.device_put(first, device)))
+        return jax.device_put(mdgps.iteration_result(carry), self.home)
 
 
 class _LoweredParts(NamedTuple):
-    """An iteration's parts (``ITERATION_PARTS``) lowered, to be compiled together."""
+    """An iteration's parts (``ITERATION_PARTS``) lowered, to be compiled together, and the mesh
+    of each."""
 
     parts: tuple
+    meshes: tuple
 
 
-def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, mesh) -> _LoweredParts:
+def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, meshes) -> _LoweredParts:
     """The iteration's parts traced and lowered one after the other (``trace_s``, ``lower_s``),
-    each from the shapes of the carry that the parts before it leave. ``args``: (state, keys,
-    first) or their shapes."""
+    each from the shapes of the carry that the parts before it leave, for its mesh (``meshes``,
+    one per group of ``ITERATION_PARTS``; where they differ, every part's arguments are taken as
+    shapes on that mesh's first device). ``args``: (state, keys, first) or their shapes."""
     state, keys, first = args
     carry, parts = {"state": state, "key": keys}, []
-    for names in ITERATION_PARTS:
+    mixed = len({id(m) for m in meshes}) > 1
+    for names, mesh in zip(ITERATION_PARTS, meshes, strict=True):
         program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
-        parts.append(_traced_and_lowered(_part_program_name(names), program, cfg, (carry, first), timer,
-                                         scheduler, mesh))
+        part_args = program_store_lib.abstract((carry, first)) if mixed else (carry, first)
+        with jax.default_device(mesh.devices.flat[0]):
+            parts.append(_traced_and_lowered(_part_program_name(names), program, cfg, part_args, timer,
+                                             scheduler, mesh))
         carry.update(parts[-1].out_info)
-    return _LoweredParts(tuple(parts))
+    return _LoweredParts(tuple(parts), tuple(meshes))
 
 
 def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Timer,
@@ -475,7 +514,12 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
         if isinstance(program, _LoweredParts):
             with concurrent.futures.ThreadPoolExecutor(len(program.parts), thread_name_prefix="gmr-jax-compile") as pool:
-                compiled = _PartsStep(pool.map(lambda part: part.compile(compiler_options=options), program.parts))
+                compiled = list(pool.map(
+                    lambda part, m: part.compile(compiler_options=_compile_options(num_seeds, m)),
+                    program.parts, program.meshes))
+            devices = [m.devices.flat[0] for m in program.meshes]
+            compiled = (_PartsStep(compiled, devices, mesh.devices.flat[0]) if len(set(devices)) > 1
+                        else _PartsStep(compiled))
         else:
             compiled = program.compile(compiler_options=options)
     scheduler.programs[_program_name(kind, cfg, num_seeds, mesh)] = compiled
@@ -837,6 +881,15 @@ def _child_run(job: dict, events, stop_event) -> None:
         events.put(_ChildResult(None, err))
 
 
+def in_process_iteration_programs(choice: str, cfg: config.Config) -> str:
+    """The ``iteration_programs`` of a run in a process of its own on the host: "auto" is "parts"
+    for a policy's run (every part but the rollouts' then comes from a program store instead of
+    being traced in each new process; benchmarks/RESULTS.md, twenty-fifth session), else the
+    choice as it is."""
+    _check_iteration_programs(choice)
+    return "parts" if choice == "auto" and policies.spec_for(cfg) is not None else choice
+
+
 # JAX settings a child run takes from its parent (the CLI sets them before the first computation).
 _CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir")
 # Held while a child starts: it inherits the environment with JAX_PLATFORMS=cpu.
@@ -851,13 +904,16 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     (tracing, host callbacks, checkpoints) then does not share this interpreter's GIL with the
     runs on a GPU. Progress events come back to ``progress_fn``; the scheduler's stop request
     reaches the child (which finishes its iteration in flight); the child's exception is raised
-    here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices."""
+    here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices, with
+    the iteration's programs as :func:`in_process_iteration_programs` resolves the scheduler's
+    choice."""
     ctx = multiprocessing.get_context("spawn")
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
            "stability": stability, "devices": devices,
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
-           "iteration_programs": "auto" if scheduler is None else scheduler.iteration_programs,
+           "iteration_programs": in_process_iteration_programs(
+               "auto" if scheduler is None else scheduler.iteration_programs, cfg),
            "program_store": None if scheduler is None or scheduler.program_store is None
            else str(scheduler.program_store.directory),
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}

@@ -221,8 +221,12 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     is raised here."""
     root, result = whole
     events = []
-    runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=scheduler,
-                          progress_fn=events.append, processes=[("A", "mdgps")])
+    # "auto" compiles a policy's iteration in parts in its own process (round-off apart from the
+    # whole program here); "whole" there is the same computation as here
+    assert runner.in_process_iteration_programs("auto", cfg) == "parts"
+    with runner.Scheduler(compile_jobs=1, devices=1, iteration_programs="whole") as same:
+        runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=same,
+                              progress_fn=events.append, processes=[("A", "mdgps")])
     run = runs[("A", "mdgps")]
     _same_history(run, result)
     for name, value in result["robustness"].items():
