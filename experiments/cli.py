@@ -92,7 +92,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "and share the device (default 0: all of them)")
     p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
                    help="programs (iterations, evaluations) compiled at once (default: %(default)s; an iteration "
-                        "in parts, --iteration-programs, counts as one and compiles its seven parts in "
+                        "in parts, --iteration-programs, counts as one and compiles its parts in "
                         "parallel). XLA spreads one compilation over the cores, so more at once mostly slow "
                         "each other")
     p.add_argument("--iteration-programs", default="auto", choices=runner.ITERATION_PROGRAMS,
@@ -101,7 +101,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "rollouts and the C-step run on the host's CPU (split; for one seed on one "
                         "device, else parts). Default %(default)s: for the policy runs on a GPU, split "
                         "for one seed with the C MuJoCo backend, else parts; parts for the policy runs "
-                        "in processes of their own on the host (runner.ITERATION_PARTS, "
+                        "in processes of their own on the host (runner.ITERATION_PARTS, runner.SPLIT_PARTS, "
                         "runner.HOST_PARTS; benchmarks/RESULTS.md, twenty-third and twenty-fifth "
                         "sessions); the choice is written to config.json")
     p.add_argument("--autotune", action="store_true",

@@ -180,17 +180,21 @@ parts); "auto": for the runs of a policy on a GPU, split for one seed on one dev
 MuJoCo backend, else parts; for a policy's run in a process of its own on the host
 (:func:`run_in_process`), parts; whole elsewhere."""
 
-ITERATION_PARTS = (("rollouts",), ("model",), ("catch_up",), ("anchor",), ("cstep",), ("sstep",), ("curve",))
+ITERATION_PARTS = (("rollouts",), ("model",), ("catch_up",), ("anchor", "cstep"), ("sstep",), ("curve",))
 """The groups of ``mdgps.ITERATION_PARTS`` that the runner compiles as programs of their own
-(``iteration_programs`` "parts"): every part alone, so that the first iteration's catch-up
-S-step compiles apart from the S-step, and the parts with host callbacks (the C MuJoCo
-rollouts) apart from those that a ``ProgramStore`` can keep (benchmarks/RESULTS.md,
-twenty-third session)."""
+(``iteration_programs`` "parts"): every part alone but the KL anchor with the C-step, so that
+the first iteration's catch-up S-step compiles apart from the S-step, and the parts with host
+callbacks (the C MuJoCo rollouts) apart from those that a ``ProgramStore`` can keep
+(benchmarks/RESULTS.md, twenty-third session)."""
+
+SPLIT_PARTS = (("rollouts",), ("model",), ("catch_up",), ("anchor",), ("cstep",), ("sstep",), ("curve",))
+"""The groups of ``iteration_programs`` "split": every part alone, those of ``HOST_PARTS`` on
+the host's CPU, the others on the run's device."""
 
 HOST_PARTS = (("rollouts",), ("cstep",), ("curve",))
-"""The groups of ``ITERATION_PARTS`` that ``iteration_programs`` "split" runs on the host's CPU:
-the C MuJoCo rollouts (host callbacks; the learning curve's policy makes one per control step,
-and on a GPU each holds its one compute stream, which the other runs' S-steps wait for) and the
+"""The groups of ``SPLIT_PARTS`` that ``iteration_programs`` "split" runs on the host's CPU: the
+C MuJoCo rollouts (host callbacks; the learning curve's policy makes one per control step, and
+on a GPU each holds its one compute stream, which the other runs' S-steps wait for) and the
 step size with the C-step (small sequential factorisations). The dynamics fit and the policy's
 linearisation stay on the GPU: on the host they take many times longer (one GMR seed on an H100
 machine, benchmarks/RESULTS.md, twenty-fifth session)."""
@@ -405,10 +409,12 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
     prefix = _TIMER_PREFIX[kind]
     with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
         mode = iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh), name[2], mesh.size)
-        if kind == "step" and mode != "whole":
-            host = scheduler.mesh_for("cpu") if mode == "split" else mesh
-            return _lowered_parts(cfg, args, timer, scheduler,
-                                  tuple(host if names in HOST_PARTS else mesh for names in ITERATION_PARTS))
+        if kind == "step" and mode == "parts":
+            return _lowered_parts(cfg, args, timer, scheduler, ITERATION_PARTS, (mesh,) * len(ITERATION_PARTS))
+        if kind == "step" and mode == "split":
+            host = scheduler.mesh_for("cpu")
+            return _lowered_parts(cfg, args, timer, scheduler, SPLIT_PARTS,
+                                  tuple(host if names in HOST_PARTS else mesh for names in SPLIT_PARTS))
         return _traced_and_lowered(kind, _program(kind, mesh), cfg, args, timer, scheduler, mesh, prefix)
 
 
@@ -451,7 +457,8 @@ def _compile_options(num_seeds: int, mesh) -> dict | None:
 
 
 class _PartsStep:
-    """An iteration's compiled parts (``ITERATION_PARTS``), called as its whole program:
+    """An iteration's compiled parts (``ITERATION_PARTS`` or ``SPLIT_PARTS``), called as its
+    whole program:
     ``step(state, keys, first) -> (new state, metrics)``. ``devices``: the one device each part
     runs on, or None where every part runs on its arguments' devices. With devices, each carry
     entry is copied to a part's device the first time a part there reads it (transfers are
@@ -478,22 +485,22 @@ class _PartsStep:
 
 
 class _LoweredParts(NamedTuple):
-    """An iteration's parts (``ITERATION_PARTS``) lowered, to be compiled together, and the mesh
-    of each."""
+    """An iteration's parts lowered, to be compiled together, and the mesh of each."""
 
     parts: tuple
     meshes: tuple
 
 
-def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, meshes) -> _LoweredParts:
-    """The iteration's parts traced and lowered one after the other (``trace_s``, ``lower_s``),
-    each from the shapes of the carry that the parts before it leave, for its mesh (``meshes``,
-    one per group of ``ITERATION_PARTS``; where they differ, every part's arguments are taken as
-    shapes on that mesh's first device). ``args``: (state, keys, first) or their shapes."""
+def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, groups, meshes) -> _LoweredParts:
+    """The iteration's parts (``groups`` of ``mdgps.ITERATION_PARTS``, each a program) traced and
+    lowered one after the other (``trace_s``, ``lower_s``), each from the shapes of the carry that
+    the parts before it leave, for its mesh (``meshes``, one per group; where they differ, every
+    part's arguments are taken as shapes on that mesh's first device). ``args``: (state, keys,
+    first) or their shapes."""
     state, keys, first = args
     carry, parts = {"state": state, "key": keys}, []
     mixed = len({id(m) for m in meshes}) > 1
-    for names, mesh in zip(ITERATION_PARTS, meshes, strict=True):
+    for names, mesh in zip(groups, meshes, strict=True):
         program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
         part_args = program_store_lib.abstract((carry, first)) if mixed else (carry, first)
         with jax.default_device(mesh.devices.flat[0]):

@@ -123,7 +123,9 @@ def test_iteration_in_separate_programs_equals_the_whole_program(algorithm):
     # later one. Every part is used once, in ``mdgps.ITERATION_PARTS``' order.
     from gmr_jax import runner
 
-    assert [n for g in runner.ITERATION_PARTS for n in g] == list(mdgps.ITERATION_PARTS)
+    for groups in (runner.ITERATION_PARTS, runner.SPLIT_PARTS):
+        assert [n for g in groups for n in g] == list(mdgps.ITERATION_PARTS)
+    assert set(runner.HOST_PARTS) <= set(runner.SPLIT_PARTS)
     cfg = small(algorithm)
     state = mdgps.init(cfg, jax.random.PRNGKey(1))
     in_parts = _iteration_in_parts(cfg, runner.ITERATION_PARTS)

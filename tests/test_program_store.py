@@ -115,8 +115,8 @@ def test_a_run_from_the_store_equals_the_traced_run(tmp_path):
         with runner.Scheduler(compile_jobs=1, devices=1, iteration_programs="parts",
                               program_store=None if store is None else program_store.ProgramStore(store)) as s:
             results[name] = runner.run(cfg, [0], tmp_path / name, scheduler=s, stability=False)
-        if name == "storing":  # init, model, catch-up, anchor, C-step, S-step; rollouts and evaluation have callbacks
-            assert len(list(store.glob("*.exported"))) == 6 and not list(store.glob("*.none"))
+        if name == "storing":  # init, model, catch-up, C-step, S-step; rollouts and evaluation have callbacks
+            assert len(list(store.glob("*.exported"))) == 5 and not list(store.glob("*.none"))
     for metric, value in results["storing"]["history"].items():
         np.testing.assert_array_equal(results["stored"]["history"][metric], value, err_msg=metric)
     np.testing.assert_array_equal(results["stored"]["robustness"]["X"], results["storing"]["robustness"]["X"])

@@ -140,7 +140,7 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
         state, _ = step(runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1][:, 0],
                         jax.numpy.asarray(True))
     assert step.devices == tuple(host_device if names in runner.HOST_PARTS else run_device
-                                 for names in runner.ITERATION_PARTS)
+                                 for names in runner.SPLIT_PARTS)
     assert {d for leaf in jax.tree_util.tree_leaves(state) for d in leaf.devices()} == {run_device}
     first = jax.tree_util.tree_map(lambda a: a[:, :1], result["history"])
     assert_trees_within(split["history"], first, _scale_tol(first))
