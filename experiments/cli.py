@@ -98,8 +98,8 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--iteration-programs", default="auto", choices=runner.ITERATION_PROGRAMS,
                    help="compile each run's iteration as one program (whole), as the programs of its "
                         "parts, which compile in parallel (parts), or as parts of which the C MuJoCo "
-                        "rollouts and the C-step run on the host's CPU (split; for one seed on one "
-                        "device, else parts). Default %(default)s: for the policy runs on a GPU, split "
+                        "rollouts, the learning curve and the C-step run on the host's CPU (split; for "
+                        "one seed on one GPU with C MuJoCo, else parts). Default %(default)s: for the policy runs on a GPU, split "
                         "for one seed with the C MuJoCo backend, else parts; parts for the policy runs "
                         "in processes of their own on the host (runner.ITERATION_PARTS, runner.SPLIT_PARTS, "
                         "runner.HOST_PARTS; benchmarks/RESULTS.md, twenty-third and twenty-fifth "

@@ -38,8 +38,9 @@ def _label(algorithm: str, curve: str) -> str:
 def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
                   command_s: float | None = None, start_s: float | None = None) -> dict:
     """Write ``results.json``: per run (scenario, algorithm, seed) the per-iteration metrics, and
-    the seconds of the runs side by side (``total_s``), of the whole command (``command_s``) and
-    from the command's start to the runs' (``start_s``).
+    the seconds of the runs side by side (``total_s``, "total_wall_s"), of the whole command
+    (``command_s``, "command_wall_s") and from the command's start to the runs' (``start_s``,
+    "startup_s": imports and set-up).
 
     Scalars per condition are averaged over conditions (the learning-curve convention), and the
     per-condition values are kept too.
@@ -85,7 +86,7 @@ def write_results(out: pathlib.Path, configs, runs, seeds, device, total_s,
             records.append(rec)
     results = {"device": device, "seeds": list(seeds), "total_wall_s": total_s,
                **({} if command_s is None else {"command_wall_s": command_s}),
-               **({} if start_s is None else {"command_start_s": start_s}),
+               **({} if start_s is None else {"startup_s": start_s}),
                "timing": {f"{s}/{a}": {"wall_s": r["wall_s"], **r.get("timing", {}),
                                        "iteration_s": list(r.get("iteration_s", []))}
                           for (s, a), r in runs.items()},

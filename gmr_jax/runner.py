@@ -174,11 +174,11 @@ def switch_interval(seconds: float | None):
 ITERATION_PROGRAMS = ("auto", "whole", "parts", "split")
 """How the runner compiles a run's iteration (``Scheduler.iteration_programs``): "whole" as one
 program (``mdgps.iteration``); "parts" as the programs of ``ITERATION_PARTS``, traced one after
-the other and compiled in parallel threads; "split" as "parts", with the groups of ``HOST_PARTS``
-compiled for and run on the host's CPU (for a run of one seed on one device; others run in
-parts); "auto": for the runs of a policy on a GPU, split for one seed on one device with the C
-MuJoCo backend, else parts; for a policy's run in a process of its own on the host
-(:func:`run_in_process`), parts; whole elsewhere."""
+the other and compiled in parallel threads; "split" as the programs of ``SPLIT_PARTS``, those of
+``HOST_PARTS`` compiled for and run on the host's CPU (for a run of one seed on one GPU with the
+C MuJoCo backend, where the process has a CPU device; other runs take parts); "auto": for the
+runs of a policy on a GPU, split where split applies, else parts; for a policy's run in a process
+of its own on the host (:func:`run_in_process`), parts; whole elsewhere."""
 
 ITERATION_PARTS = (("rollouts",), ("model",), ("catch_up",), ("anchor", "cstep"), ("sstep",), ("curve",))
 """The groups of ``mdgps.ITERATION_PARTS`` that the runner compiles as programs of their own
@@ -205,19 +205,29 @@ def _check_iteration_programs(choice: str) -> None:
         raise ValueError(f"iteration_programs: {choice!r} is not one of {', '.join(ITERATION_PROGRAMS)}")
 
 
+def host_cpu_available() -> bool:
+    """Whether this process has a CPU device beside its default backend (not with, e.g.,
+    ``JAX_PLATFORMS=cuda``)."""
+    try:
+        return bool(jax.local_devices(backend="cpu"))
+    except RuntimeError:
+        return False
+
+
 def iteration_programs_for(choice: str, cfg: config.Config, platform: str, num_seeds: int = 1,
                            devices: int = 1) -> str:
     """"whole", "parts" or "split": ``choice`` (one of ``ITERATION_PROGRAMS``) for a run of
     ``cfg`` with ``num_seeds`` seeds on ``devices`` devices of ``platform``."""
     _check_iteration_programs(choice)
-    one = num_seeds == 1 and devices == 1
+    split = (num_seeds == 1 and devices == 1 and platform != "cpu" and cfg.sim.backend == "mujoco"
+             and host_cpu_available())
     if choice == "split":
-        return "split" if one else "parts"
+        return "split" if split else "parts"
     if choice != "auto":
         return choice
     if platform != "gpu" or policies.spec_for(cfg) is None:
         return "whole"
-    return "split" if one and cfg.sim.backend == "mujoco" else "parts"
+    return "split" if split else "parts"
 
 
 class Scheduler:
@@ -242,8 +252,9 @@ class Scheduler:
         iteration in flight.
       switch_interval: Python's thread switch interval (seconds, ``sys.setswitchinterval``)
         while :func:`run_all` trains runs side by side; None leaves Python's (5 ms).
-      iteration_programs: one of ``ITERATION_PROGRAMS`` (the iteration as one program or in
-        parts; a run in parts takes one compile slot for all its parts).
+      iteration_programs: one of ``ITERATION_PROGRAMS`` (the iteration as one program, in
+        parts, or in parts some of which run on the host; a run in parts takes one compile slot
+        for all its parts).
       program_store: a ``program_store.ProgramStore`` that the programs of one-device runs are
         lowered from (traced and stored the first time), or None: traced in every process.
     """
@@ -282,6 +293,13 @@ class Scheduler:
             except RuntimeError as err:
                 raise ValueError(f"platform {platform!r}: no such devices here ({err})") from err
         return self._meshes[platform]
+
+    def host_mesh(self):
+        """The one-device mesh of the host's first CPU device, where split iterations run their
+        ``HOST_PARTS`` (one seed: however many CPU devices the host has)."""
+        if "host" not in self._meshes:
+            self._meshes["host"] = sharding.seed_mesh(1, "cpu")
+        return self._meshes["host"]
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
@@ -412,7 +430,7 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
         if kind == "step" and mode == "parts":
             return _lowered_parts(cfg, args, timer, scheduler, ITERATION_PARTS, (mesh,) * len(ITERATION_PARTS))
         if kind == "step" and mode == "split":
-            host = scheduler.mesh_for("cpu")
+            host = scheduler.host_mesh()
             return _lowered_parts(cfg, args, timer, scheduler, SPLIT_PARTS,
                                   tuple(host if names in HOST_PARTS else mesh for names in SPLIT_PARTS))
         return _traced_and_lowered(kind, _program(kind, mesh), cfg, args, timer, scheduler, mesh, prefix)
@@ -460,9 +478,10 @@ class _PartsStep:
     """An iteration's compiled parts (``ITERATION_PARTS`` or ``SPLIT_PARTS``), called as its
     whole program:
     ``step(state, keys, first) -> (new state, metrics)``. ``devices``: the one device each part
-    runs on, or None where every part runs on its arguments' devices. With devices, each carry
-    entry is copied to a part's device the first time a part there reads it (transfers are
-    asynchronous, as the parts are), and the result is copied to ``home``, the run's device."""
+    runs on, or None where every part runs on its arguments' devices. With devices, every carry
+    entry is copied, once, to the device of each later part (asynchronously, as the parts run; a
+    program drops the entries it does not read), and the new state to ``home``, the run's device
+    (the metrics stay where their parts computed them: the runner reads them on the host)."""
 
     def __init__(self, programs, devices=None, home=None):
         self.programs = tuple(programs)
@@ -481,7 +500,8 @@ class _PartsStep:
                 if (k, device) not in placed:
                     placed[k, device] = jax.device_put(v, device)
             carry.update(program({k: placed[k, device] for k in carry}, jax.device_put(first, device)))
-        return jax.device_put(mdgps.iteration_result(carry), self.home)
+        new_state, metrics = mdgps.iteration_result(carry)
+        return jax.device_put(new_state, self.home), metrics
 
 
 class _LoweredParts(NamedTuple):
@@ -890,9 +910,10 @@ def _child_run(job: dict, events, stop_event) -> None:
 
 def in_process_iteration_programs(choice: str, cfg: config.Config) -> str:
     """The ``iteration_programs`` of a run in a process of its own on the host: "auto" is "parts"
-    for a policy's run (every part but the rollouts' then comes from a program store instead of
-    being traced in each new process; benchmarks/RESULTS.md, twenty-fifth session), else the
-    choice as it is."""
+    for a policy's run, else the choice as it is. With a program store (the CLI's default) every
+    part but the two with host callbacks (rollouts, learning curve) then comes from the store
+    instead of being traced in each new process: warm, the default run's MDGPS runs start
+    training after ~2 s instead of ~5–6 s (benchmarks/RESULTS.md, twenty-fifth session)."""
     _check_iteration_programs(choice)
     return "parts" if choice == "auto" and policies.spec_for(cfg) is not None else choice
 

@@ -116,7 +116,8 @@ def _iteration_in_parts(cfg, groups):
 
 @pytest.mark.parametrize("algorithm", ["mdgps", "gmr"])
 def test_iteration_in_separate_programs_equals_the_whole_program(algorithm):
-    # The runner may compile an iteration as the programs of its parts (runner.ITERATION_PARTS);
+    # The runner may compile an iteration as the programs of its parts (runner.ITERATION_PARTS,
+    # or runner.SPLIT_PARTS, some of them on another device);
     # they are the same computation split at stage boundaries, so the two differ only where XLA
     # fuses and orders sums differently across a boundary: within the tolerance measured from
     # ε-perturbed inputs (tests/tolerances.py), for the first iteration (catch-up S-step) and a
@@ -128,12 +129,13 @@ def test_iteration_in_separate_programs_equals_the_whole_program(algorithm):
     assert set(runner.HOST_PARTS) <= set(runner.SPLIT_PARTS)
     cfg = small(algorithm)
     state = mdgps.init(cfg, jax.random.PRNGKey(1))
-    in_parts = _iteration_in_parts(cfg, runner.ITERATION_PARTS)
+    groupings = [_iteration_in_parts(cfg, groups) for groups in (runner.ITERATION_PARTS, runner.SPLIT_PARTS)]
     for first, key in ((True, jax.random.PRNGKey(2)), (False, jax.random.PRNGKey(3))):
         flag = jnp.asarray(first)
         whole, tol = measured_tol(lambda s: _iteration_jit(cfg, s, key, flag), (state,), SAFETY)
         assert_tolerances_small(whole, tol, 1e-5)
-        assert_trees_within(in_parts(state, key, flag), whole, tol)
+        for in_parts in groupings:
+            assert_trees_within(in_parts(state, key, flag), whole, tol)
         state = whole[0]
     assert int(state.iteration) == 2
 

@@ -9,7 +9,7 @@ import pytest
 
 from gmr_jax import mdgps, program_store, runner, sharding
 from test_mdgps import small
-from tolerances import SAFETY, assert_trees_within, measured_tol
+from tolerances import SAFETY, assert_trees_within, measured_tol, scale_tol
 
 
 def _program():
@@ -121,5 +121,4 @@ def test_a_run_from_the_store_equals_the_traced_run(tmp_path):
         np.testing.assert_array_equal(results["stored"]["history"][metric], value, err_msg=metric)
     np.testing.assert_array_equal(results["stored"]["robustness"]["X"], results["storing"]["robustness"]["X"])
     ref = results["traced"]["history"]
-    assert_trees_within(results["storing"]["history"], ref,
-                        [1e-6 * float(np.max(np.abs(a), initial=0.0)) for a in jax.tree_util.tree_leaves(ref)])
+    assert_trees_within(results["storing"]["history"], ref, scale_tol(ref))

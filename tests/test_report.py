@@ -42,9 +42,10 @@ def test_results_summary_and_figures(tmp_path):
     configs = {(s, a): config.reach(s, a, iterations=ITERS, task__T=T) for s in ("A", "AB") for a in ("gmr", "mdgps")}
     runs = {("A", "gmr"): fake_run(1, [50, 27]), ("A", "mdgps"): fake_run(1, [0, 2], seed=1),
             ("AB", "gmr"): fake_run(2, [50, 50], seed=2), ("AB", "mdgps"): fake_run(2, [3, 4], seed=3)}
-    results = report.write_results(tmp_path, configs, runs, [0, 1], "cpu: test", 12.0, command_s=13.0)
+    results = report.write_results(tmp_path, configs, runs, [0, 1], "cpu: test", 12.0, command_s=13.0, start_s=0.5)
     again = json.loads((tmp_path / "results.json").read_text())
     assert again == json.loads(json.dumps(results))
+    assert (again["total_wall_s"], again["command_wall_s"], again["startup_s"]) == (12.0, 13.0, 0.5)
     recs = {(r["scenario"], r["algorithm"], r["seed"]): r for r in again["runs"]}
     assert recs[("A", "gmr", 1)]["robustness"]["successes"] == 27
     assert recs[("A", "gmr", 1)]["robustness"]["successes_loose"] == 50

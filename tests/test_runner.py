@@ -93,11 +93,6 @@ def test_interrupted_resumed_and_extended_run_equals_an_uninterrupted_one(whole,
     np.testing.assert_array_equal(extended["robustness"]["mse"], result["robustness"]["mse"])
 
 
-def _scale_tol(tree) -> list:
-    """1e-6 of each leaf's largest magnitude (the parts tests' tolerance, below)."""
-    return [1e-6 * float(np.max(np.abs(a), initial=0.0)) for a in jax.tree_util.tree_leaves(tree)]
-
-
 def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, tmp_path):
     """``iteration_programs="parts"``: each group of ``runner.ITERATION_PARTS`` compiled as a
     program of its own (the groups in parallel threads), called in turn by the training loop.
@@ -105,7 +100,7 @@ def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, t
     ``test_mdgps.py``); here, the whole runner: every metric within 1e-6 of its array's scale (on
     the CPU the two differ by about 1e-15 relative, and ε-perturbed inputs move one iteration's
     outputs by at most 5e-9 of their scale, test_mdgps.py), integer and boolean metrics equal."""
-    from tolerances import assert_trees_within
+    from tolerances import assert_trees_within, scale_tol
 
     cfg, root, result, _ = whole
     with runner.Scheduler(compile_jobs=1, devices=1, iteration_programs="parts") as own:
@@ -113,19 +108,20 @@ def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, t
         (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
     assert isinstance(step, runner._PartsStep) and len(step.programs) == len(runner.ITERATION_PARTS)
     assert parts["timing"]["compile_s"] > 0 and parts["timing"]["trace_s"] > 0
-    assert_trees_within(parts["history"], result["history"], _scale_tol(result["history"]))
+    assert_trees_within(parts["history"], result["history"], scale_tol(result["history"]))
     final = _final_state(cfg, root / "whole")
-    assert_trees_within(_final_state(cfg, tmp_path / "parts"), final, _scale_tol(final))
-    assert_trees_within(parts["robustness"], result["robustness"], _scale_tol(result["robustness"]))
+    assert_trees_within(_final_state(cfg, tmp_path / "parts"), final, scale_tol(final))
+    assert_trees_within(parts["robustness"], result["robustness"], scale_tol(result["robustness"]))
 
 
 def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monkeypatch):
-    """``iteration_programs="split"``: the groups of ``runner.HOST_PARTS`` compiled for the host's
-    CPU, the others for the run's device. Here a second CPU device stands in for the host beside
-    the run's device, so every carry entry a part reads is copied between two devices: a run of
-    one seed equals that seed of the whole-program run of two seeds to round-off (the tolerance
-    of the parts test above), and the iteration's result comes back to the run's device."""
-    from tolerances import assert_trees_within
+    """``iteration_programs="split"``: the groups of ``runner.SPLIT_PARTS`` in ``runner.HOST_PARTS``
+    compiled for the host's CPU, the others for the run's device. Here a second CPU device stands
+    in for the host beside the run's device (split itself applies to runs on a GPU), so the carry
+    is copied between two devices: a run of one seed equals that seed of the whole-program run of
+    two seeds to round-off (the tolerance of the parts test above), its new state lies on the
+    run's device and its learning curve was computed on the host's."""
+    from tolerances import assert_trees_within, scale_tol
 
     if len(jax.devices()) < 2:
         pytest.skip("needs two devices (XLA_FLAGS=--xla_force_host_platform_device_count=2)")
@@ -133,19 +129,23 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
     run_device, host_device = jax.devices()[:2]
     host = jax.make_mesh((1,), (sharding.AXIS,), axis_types=(jax.sharding.AxisType.Auto,),
                          devices=[host_device])
+    monkeypatch.setattr(runner, "iteration_programs_for", lambda *args: "split")
     with runner.Scheduler(compile_jobs=1, devices=1, iteration_programs="split") as own:
-        monkeypatch.setattr(own, "mesh_for", lambda platform: host if platform == "cpu" else own.mesh)
+        monkeypatch.setattr(own, "host_mesh", lambda: host)
         split = runner.run(cfg, SEEDS[:1], tmp_path / "split", scheduler=own, stability=False)
         (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
-        state, _ = step(runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1][:, 0],
-                        jax.numpy.asarray(True))
+        state, metrics = step(runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1][:, 0],
+                              jax.numpy.asarray(True))
     assert step.devices == tuple(host_device if names in runner.HOST_PARTS else run_device
                                  for names in runner.SPLIT_PARTS)
-    assert {d for leaf in jax.tree_util.tree_leaves(state) for d in leaf.devices()} == {run_device}
+    devices = lambda tree: {d for leaf in jax.tree_util.tree_leaves(tree) for d in leaf.devices()}  # noqa: E731
+    assert devices(state) == {run_device}
+    assert devices(metrics["final_state_mse_policy"]) == {host_device}  # the learning curve's
+    assert devices(metrics["sstep_loss"]) == {run_device}
     first = jax.tree_util.tree_map(lambda a: a[:, :1], result["history"])
-    assert_trees_within(split["history"], first, _scale_tol(first))
+    assert_trees_within(split["history"], first, scale_tol(first))
     robust = jax.tree_util.tree_map(lambda a: a[:1], result["robustness"])
-    assert_trees_within(split["robustness"], robust, _scale_tol(robust))
+    assert_trees_within(split["robustness"], robust, scale_tol(robust))
 
 
 def test_iteration_programs_resolve_per_run_and_platform():
@@ -156,8 +156,12 @@ def test_iteration_programs_resolve_per_run_and_platform():
     assert runner.iteration_programs_for("auto", gmr, "gpu", 1, 2) == "parts"
     mjx = dataclasses.replace(gmr, sim=dataclasses.replace(gmr.sim, backend="mjx"))
     assert runner.iteration_programs_for("auto", mjx, "gpu") == "parts"  # MJX's rollouts stay on the GPU
-    assert runner.iteration_programs_for("split", gmr, "cpu") == "split"
+    assert runner.iteration_programs_for("split", gmr, "gpu") == "split"
+    assert runner.iteration_programs_for("split", gmr, "cpu") == "parts"  # nothing to move elsewhere
     assert runner.iteration_programs_for("split", gmr, "gpu", 4) == "parts"
+    assert runner.iteration_programs_for("split", mjx, "gpu") == "parts"
+    with runner.Scheduler(devices=1) as s:  # one seed: one host device, however many the host has
+        assert len(jax.devices("cpu")) > 1 and s.host_mesh().devices.tolist() == [jax.devices("cpu")[0]]
     assert runner.iteration_programs_for("auto", gmr, "cpu") == "whole"
     assert runner.iteration_programs_for("auto", lqr, "gpu") == "whole"  # no policy: no S-steps to split
     assert runner.iteration_programs_for("parts", gmr, "cpu") == "parts"

@@ -106,6 +106,13 @@ def measured_tol(f, args: tuple, factor: float, seeds=(101, 102)):
     return ref, tol
 
 
+def scale_tol(tree, rel: float = 1e-6) -> list:
+    """Per-leaf absolute tolerances ``rel`` · max|leaf| (for ``assert_trees_within``): the
+    tolerance of whole runs that differ by round-off only (a program split into parts, another
+    process), far below what a change of the computation moves."""
+    return [rel * _scale(a) for a in jax.tree_util.tree_leaves(tree)]
+
+
 def assert_close(got, ref, tol: float, err_msg: str = ""):
     """Normwise: max|got − ref| ≤ tol·max|ref| (absolute ``tol`` where ref is all zeros), with NaN
     and ±inf at the same places."""
