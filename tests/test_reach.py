@@ -97,3 +97,27 @@ def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1
     assert (tmp_path / "config.json").read_text() == "earlier run"
     assert checkpoint.latest(ckpt) == 1
+
+
+def test_config_json_records_how_each_run_compiles_its_iteration():
+    """``cli._iteration_programs``: what config.json records per run is what the runner resolves
+    there: on a GPU, split for a one-seed GMR run with C MuJoCo, parts for more seeds; a run on
+    the host in a process of its own compiles in parts (``runner.in_process_iteration_programs``),
+    in this process as one program."""
+    import types
+
+    from test_mdgps import small
+
+    gmr, mdgps = small("gmr"), small("mdgps")
+    gpu = [types.SimpleNamespace(platform="gpu")]
+    args = types.SimpleNamespace(platforms={("A", "mdgps"): "cpu"}, iteration_programs="auto", seeds=1,
+                                 cpu_runs_in_process=True)
+    assert cli._iteration_programs(args, "A", "gmr", gmr, gpu) == "split"
+    assert cli._iteration_programs(args, "A", "mdgps", mdgps, gpu) == "parts"
+    args.cpu_runs_in_process = False
+    assert cli._iteration_programs(args, "A", "mdgps", mdgps, gpu) == "whole"
+    assert cli._iteration_programs(args, "A", "gmr", gmr, gpu * 2) == "parts"  # one seed, two GPUs
+    args.seeds = 2
+    assert cli._iteration_programs(args, "A", "gmr", gmr, gpu) == "parts"
+    args.iteration_programs = "whole"
+    assert cli._iteration_programs(args, "A", "gmr", gmr, gpu) == "whole"
