@@ -114,6 +114,7 @@ def main(argv=None) -> int:
         res["rows"].append({"what": f"{algorithm} {scenario} alone", "s": alone_s[i], "compile_s": compile_s,
                             "sha": hashlib.sha256(np.asarray(flat(alone[i])).tobytes()).hexdigest()[:16]})
         print(res["rows"][-1], flush=True)
+
     def max_rel_diff(out, idx):
         return max(float(jnp.max(jnp.abs(flat(o) - flat(alone[i]))) / jnp.max(jnp.abs(flat(alone[i]))))
                    for o, i in zip(out, idx))

@@ -99,11 +99,11 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="compile each run's iteration as one program (whole), as the programs of its "
                         "parts, which compile in parallel (parts), or as parts of which the C MuJoCo "
                         "rollouts, the learning curve and the C-step run on the host's CPU (split; for "
-                        "one seed on one GPU with C MuJoCo, else parts). Default %(default)s: for the policy runs on a GPU, split "
-                        "for one seed with the C MuJoCo backend, else parts; parts for the policy runs "
-                        "in processes of their own on the host (runner.ITERATION_PARTS, runner.SPLIT_PARTS, "
-                        "runner.HOST_PARTS; benchmarks/RESULTS.md, twenty-third and twenty-fifth "
-                        "sessions); the choice is written to config.json")
+                        "one seed on one GPU with C MuJoCo, else parts). Default %(default)s: split where "
+                        "it applies and parts otherwise for the policy runs on a GPU, parts for those in "
+                        "processes of their own on the host, whole elsewhere (runner.ITERATION_PARTS, "
+                        "runner.SPLIT_PARTS, runner.HOST_PARTS; benchmarks/RESULTS.md, twenty-third and "
+                        "twenty-fifth sessions); the choice is written to config.json")
     p.add_argument("--autotune", action="store_true",
                    help="let XLA time kernel variants on the GPU while compiling. Off by default: "
                         "runs that compile while others train make those timings slow and noisy, "

@@ -219,14 +219,12 @@ def iteration_programs_for(choice: str, cfg: config.Config, platform: str, num_s
     """"whole", "parts" or "split": ``choice`` (one of ``ITERATION_PROGRAMS``) for a run of
     ``cfg`` with ``num_seeds`` seeds on ``devices`` devices of ``platform``."""
     _check_iteration_programs(choice)
+    if choice in ("whole", "parts"):
+        return choice
+    if choice == "auto" and (platform != "gpu" or policies.spec_for(cfg) is None):
+        return "whole"
     split = (num_seeds == 1 and devices == 1 and platform != "cpu" and cfg.sim.backend == "mujoco"
              and host_cpu_available())
-    if choice == "split":
-        return "split" if split else "parts"
-    if choice != "auto":
-        return choice
-    if platform != "gpu" or policies.spec_for(cfg) is None:
-        return "whole"
     return "split" if split else "parts"
 
 
@@ -426,10 +424,11 @@ def _lowered(kind: str, cfg: config.Config, args, timer: Timer, scheduler: Sched
         return scheduler.programs[name]
     prefix = _TIMER_PREFIX[kind]
     with jax.default_device(mesh.devices.flat[0]):  # also where arguments given as shapes lie
-        mode = iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh), name[2], mesh.size)
-        if kind == "step" and mode == "parts":
+        mode = "whole" if kind != "step" else iteration_programs_for(
+            scheduler.iteration_programs, cfg, _platform(mesh), name[2], mesh.size)
+        if mode == "parts":
             return _lowered_parts(cfg, args, timer, scheduler, ITERATION_PARTS, (mesh,) * len(ITERATION_PARTS))
-        if kind == "step" and mode == "split":
+        if mode == "split":
             host = scheduler.host_mesh()
             return _lowered_parts(cfg, args, timer, scheduler, SPLIT_PARTS,
                                   tuple(host if names in HOST_PARTS else mesh for names in SPLIT_PARTS))
@@ -537,7 +536,6 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     (:class:`_LoweredParts`) compile in parallel threads, in one slot."""
     if not isinstance(program, (jax.stages.Lowered, program_store_lib.StoredLowered, _LoweredParts)):
         return program
-    options = _compile_options(num_seeds, mesh)
     with scheduler.compile_slots if slot else contextlib.nullcontext(), timer(f"{_TIMER_PREFIX[kind]}compile_s"):
         if isinstance(program, _LoweredParts):
             with concurrent.futures.ThreadPoolExecutor(len(program.parts), thread_name_prefix="gmr-jax-compile") as pool:
@@ -548,7 +546,7 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
             compiled = (_PartsStep(compiled, devices, mesh.devices.flat[0]) if len(set(devices)) > 1
                         else _PartsStep(compiled))
         else:
-            compiled = program.compile(compiler_options=options)
+            compiled = program.compile(compiler_options=_compile_options(num_seeds, mesh))
     scheduler.programs[_program_name(kind, cfg, num_seeds, mesh)] = compiled
     return compiled
 
