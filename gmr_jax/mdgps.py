@@ -445,9 +445,9 @@ def stage_keys(key: Array) -> tuple[Array, ...]:
 #
 # An iteration is a chain of parts. A part maps (cfg, carry, first) to new entries of the carry, a
 # dict that starts as {"state": TrainState, "key": the iteration's key} (``update``: also
-# "samples") and ends with "new_state", "metrics" and "curve". ``iteration`` traces the chain as
-# one program; the runner may compile groups of consecutive parts as programs of their own
-# (``part_program``), which XLA compiles in parallel.
+# "samples") and ends with the new state's entries (``new_state``), "metrics" and "curve".
+# ``iteration`` traces the chain as one program; the runner may compile groups of consecutive
+# parts as programs of their own (``part_program``), which XLA compiles in parallel.
 
 
 def _rollouts_part(cfg: Config, c: dict, first: Array) -> dict:
@@ -489,7 +489,8 @@ def _cstep_part(cfg: Config, c: dict, first: Array) -> dict:
 
 
 def _sstep_part(cfg: Config, c: dict, first: Array) -> dict:
-    """The S-step; the new state and the iteration's metrics (without the learning curve's)."""
+    """The S-step (the new policy), the iteration count and the iteration's metrics (without the
+    learning curve's)."""
     state, samples, traj, info = c["state"], c["samples"], c["traj"], c["info"]
     policy, sstep_loss, sstep_ok = s_step(cfg, c["policy"], traj, samples, c["marginals"], stage_keys(c["key"])[4])
     ok = info.ok & jnp.all(jnp.isfinite(traj.K), axis=(1, 2, 3)) & c["catch_up_ok"] & sstep_ok
@@ -502,16 +503,26 @@ def _sstep_part(cfg: Config, c: dict, first: Array) -> dict:
         "sample_final_x": samples.X[:, :, -1], "ok": ok}
     if policy is not None:
         metrics["sstep_loss"] = jnp.broadcast_to(sstep_loss, ok.shape)
-    new_state = TrainState(iteration=state.iteration + 1, traj=traj, eta=c["eta"], step_mult=c["step_mult"],
-                           dyn_prior=c["dyn_prior"], prev=model, policy=policy)
-    return {"new_state": new_state, "metrics": metrics}
+    return {"iteration": state.iteration + 1, "new_policy": policy, "metrics": metrics}
+
+
+STATE_ENTRIES = {"iteration": "iteration", "traj": "traj", "eta": "eta", "step_mult": "step_mult",
+                 "dyn_prior": "dyn_prior", "prev": "model", "policy": "new_policy"}
+"""The carry entry of each field of the new state (``new_state``)."""
+
+
+def new_state(carry: dict) -> TrainState:
+    """The state after the iteration, assembled from the carry's entries as the parts computed
+    them (not copied into one part's results): a program of later parts, or of the next
+    iteration, then waits only for the parts whose results it reads (the next iteration's
+    rollouts for the C-step, not for the S-step)."""
+    return TrainState(**{field: carry[entry] for field, entry in STATE_ENTRIES.items()})
 
 
 def _curve_part(cfg: Config, c: dict, first: Array) -> dict:
     """The learning curve of the new controllers and policy."""
-    new_state = c["new_state"]
-    x0 = tasks.initial_states(cfg.task, new_state.eta.dtype)
-    return {"curve": learning_curve(cfg, new_state.traj, new_state.policy, x0)}
+    x0 = tasks.initial_states(cfg.task, c["eta"].dtype)
+    return {"curve": learning_curve(cfg, c["traj"], c["new_policy"], x0)}
 
 
 ITERATION_PARTS = {"rollouts": _rollouts_part, "model": _model_part, "catch_up": _catch_up_part,
@@ -550,7 +561,7 @@ def part_program(names: tuple[str, ...]):
 
 def iteration_result(carry: dict) -> tuple[TrainState, dict]:
     """(new state, metrics) of a carry after every part of ``ITERATION_PARTS``."""
-    return carry["new_state"], {**carry["metrics"], **carry["curve"]}
+    return new_state(carry), {**carry["metrics"], **carry["curve"]}
 
 
 def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
@@ -559,7 +570,7 @@ def update(cfg: Config, state: TrainState, samples: Trajectories, key: Array,
     expansion, dynamics fit, KL anchor, step size, C-step, S-step. Returns (new state, metrics
     without the learning curve's)."""
     carry = run_parts(cfg, _UPDATE_PARTS, {"state": state, "samples": samples, "key": key}, first)
-    return carry["new_state"], carry["metrics"]
+    return new_state(carry), carry["metrics"]
 
 
 def iteration(cfg: Config, state: TrainState, key: Array, first: Array | None = None):

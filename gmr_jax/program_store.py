@@ -35,6 +35,7 @@ import warnings
 from typing import Any, NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 from gmr_jax import config, sim
 
@@ -86,17 +87,24 @@ def program_key(name: str, cfg: config.Config, args, platform: str) -> str:
 
 
 class StoredCompiled(NamedTuple):
-    """A stored program compiled: called with the original argument trees."""
+    """A stored program compiled: called with the original argument trees, of which it takes the
+    leaves that it reads (``kept``)."""
 
     compiled: Any
     in_tree: Any
     out_tree: Any
+    kept: tuple[int, ...]
+
+    @property
+    def reads(self) -> tuple[bool, ...]:
+        """Per argument leaf: whether the program reads it."""
+        return tuple(i in self.kept for i in range(self.in_tree.num_leaves))
 
     def __call__(self, *args):
         leaves, tree = jax.tree_util.tree_flatten(args)
         if tree != self.in_tree:
             raise ValueError(f"stored program called with arguments {tree}, compiled for {self.in_tree}")
-        return jax.tree_util.tree_unflatten(self.out_tree, self.compiled(*leaves))
+        return jax.tree_util.tree_unflatten(self.out_tree, self.compiled(*(leaves[i] for i in self.kept)))
 
 
 class StoredLowered(NamedTuple):
@@ -106,13 +114,15 @@ class StoredLowered(NamedTuple):
     lowered: jax.stages.Lowered
     in_tree: Any
     out_tree: Any
+    kept: tuple[int, ...]
 
     @property
     def out_info(self):
         return jax.tree_util.tree_unflatten(self.out_tree, self.lowered.out_info)
 
     def compile(self, compiler_options=None) -> StoredCompiled:
-        return StoredCompiled(self.lowered.compile(compiler_options=compiler_options), self.in_tree, self.out_tree)
+        return StoredCompiled(self.lowered.compile(compiler_options=compiler_options), self.in_tree, self.out_tree,
+                              self.kept)
 
 
 class ProgramStore:
@@ -178,8 +188,20 @@ class ProgramStore:
 
     @staticmethod
     def _lowered(found, in_tree, avals) -> StoredLowered:
+        """The exported module lowered as a program of the leaves that it reads (and of every
+        PRNG key, which has no zeros): the others are zeros in the program, which the module
+        drops, so that a call neither copies nor waits for them (as ``jax.jit`` drops a
+        program's unread arguments)."""
         exported, out_tree = found
-        return StoredLowered(jax.jit(exported.call).trace(*avals).lower(), in_tree, out_tree)
+        kept = tuple(sorted(set(exported.module_kept_var_idx)
+                            | {i for i, a in enumerate(avals) if jax.dtypes.issubdtype(a.dtype, jax.dtypes.prng_key)}))
+
+        def call(*kept_leaves):
+            leaves = [None if i in kept else jnp.zeros(a.shape, a.dtype) for i, a in enumerate(avals)]
+            for i, leaf in zip(kept, kept_leaves, strict=True):
+                leaves[i] = leaf
+            return exported.call(*leaves)
+        return StoredLowered(jax.jit(call).trace(*(avals[i] for i in kept)).lower(), in_tree, out_tree, kept)
 
     def lower(self, name: str, program, cfg: config.Config, args, platform: str, timer=None,
               prefix: str = "") -> StoredLowered | None:

@@ -473,19 +473,35 @@ def _compile_options(num_seeds: int, mesh) -> dict | None:
     return sharding.compiler_options(sharding.seeds_per_device(num_seeds, mesh.size), _platform(mesh)) or None
 
 
+def _reads(program) -> tuple[bool, ...]:
+    """Per flat argument of a compiled program (the leaves of its arguments): whether it reads it
+    (JAX drops the others from the program: ``input_shardings`` None)."""
+    if isinstance(program, program_store_lib.StoredCompiled):
+        return program.reads
+    return tuple(s is not None for s in program.in_tree.flatten_up_to(program.input_shardings))
+
+
 class _PartsStep:
     """An iteration's compiled parts (``ITERATION_PARTS`` or ``SPLIT_PARTS``), called as its
-    whole program:
-    ``step(state, keys, first) -> (new state, metrics)``. ``devices``: the one device each part
-    runs on, or None where every part runs on its arguments' devices. With devices, every carry
-    entry is copied, once, to the device of each later part (asynchronously, as the parts run; a
-    program drops the entries it does not read), and the new state to ``home``, the run's device
-    (the metrics stay where their parts computed them: the runner reads them on the host)."""
+    whole program: ``step(state, keys, first) -> (new state, metrics)``.
 
-    def __init__(self, programs, devices=None, home=None):
+    Without ``devices`` every part runs where its arguments lie. With ``devices`` (the one device
+    of each part), each part gets the carry's arrays that it reads, those from other devices
+    copied to its own, and is called once they are complete: a device runs its programs in the
+    order they were called, so a program waiting for another device's results would hold back
+    every program called after it there (the next iteration's rollouts, another run's parts). The
+    new state's entries stay where their parts computed them (``mdgps.new_state``). The parts
+    after the first ``state_after`` (those that only add metrics: the learning curve) are then
+    called from a thread of ``pool`` and the metrics are a ``concurrent.futures.Future`` of the
+    dict, so that the next iteration can be called at once: its rollouts run on the host while
+    this iteration's S-step runs on the GPU (the runner calls it before it reads the metrics)."""
+
+    def __init__(self, programs, devices=None, state_after: int | None = None, pool=None):
         self.programs = tuple(programs)
         self.devices = None if devices is None else tuple(devices)
-        self.home = home
+        self.reads = None if devices is None else tuple(_reads(p) for p in self.programs)
+        self.state_after = len(self.programs) if state_after is None or devices is None else state_after
+        self.pool = pool
 
     def __call__(self, state, keys, first):
         carry = {"state": state, "key": keys}
@@ -493,21 +509,43 @@ class _PartsStep:
             for program in self.programs:
                 carry.update(program(carry, first))
             return mdgps.iteration_result(carry)
-        placed: dict = {}
-        for program, device in zip(self.programs, self.devices, strict=True):
-            for k, v in carry.items():
-                if (k, device) not in placed:
-                    placed[k, device] = jax.device_put(v, device)
-            carry.update(program({k: placed[k, device] for k in carry}, jax.device_put(first, device)))
-        new_state, metrics = mdgps.iteration_result(carry)
-        return jax.device_put(new_state, self.home), metrics
+        copies: dict = {}
+        for index in range(self.state_after):
+            carry.update(self._call(index, carry, first, copies))
+        later = range(self.state_after, len(self.programs))
+        if not later:
+            return mdgps.iteration_result(carry)
+
+        def metrics(carry: dict) -> dict:
+            for index in later:
+                carry.update(self._call(index, carry, first, copies))
+            return mdgps.iteration_result(carry)[1]
+        return mdgps.new_state(carry), self.pool.submit(metrics, dict(carry))
+
+    def _call(self, index: int, carry: dict, first, copies: dict) -> dict:
+        """Part ``index`` called with the arrays it reads on its device, once they are complete
+        (``copies``: the copies made so far in this iteration, by (array id, device))."""
+        device = self.devices[index]
+        leaves, tree = jax.tree_util.tree_flatten((carry, first))
+        moved = []
+        for i, read in enumerate(self.reads[index]):
+            if read and leaves[i].devices() != {device}:
+                key = id(leaves[i]), device
+                if key not in copies:
+                    copies[key] = (jax.device_put(leaves[i], device), leaves[i])  # the original kept alive
+                leaves[i] = copies[key][0]
+                moved.append(leaves[i])
+        jax.block_until_ready(moved)
+        return self.programs[index](*jax.tree_util.tree_unflatten(tree, leaves))
 
 
 class _LoweredParts(NamedTuple):
-    """An iteration's parts lowered, to be compiled together, and the mesh of each."""
+    """An iteration's parts lowered, to be compiled together, the mesh of each, and how many of
+    them compute the new state (``mdgps.STATE_ENTRIES``; the others only add metrics)."""
 
     parts: tuple
     meshes: tuple
+    state_after: int
 
 
 def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler, groups, meshes) -> _LoweredParts:
@@ -517,7 +555,7 @@ def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler,
     part's arguments are taken as shapes on that mesh's first device). ``args``: (state, keys,
     first) or their shapes."""
     state, keys, first = args
-    carry, parts = {"state": state, "key": keys}, []
+    carry, parts, state_after = {"state": state, "key": keys}, [], None
     mixed = len({id(m) for m in meshes}) > 1
     for names, mesh in zip(groups, meshes, strict=True):
         program = sharding.seed_program(mdgps.part_program(names), mesh, (True, False))
@@ -526,7 +564,9 @@ def _lowered_parts(cfg: config.Config, args, timer: Timer, scheduler: Scheduler,
             parts.append(_traced_and_lowered(_part_program_name(names), program, cfg, part_args, timer,
                                              scheduler, mesh))
         carry.update(parts[-1].out_info)
-    return _LoweredParts(tuple(parts), tuple(meshes))
+        if state_after is None and set(mdgps.STATE_ENTRIES.values()) <= set(carry):
+            state_after = len(parts)
+    return _LoweredParts(tuple(parts), tuple(meshes), state_after)
 
 
 def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Timer,
@@ -543,8 +583,8 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
                     lambda part, m: part.compile(compiler_options=_compile_options(num_seeds, m)),
                     program.parts, program.meshes))
             devices = [m.devices.flat[0] for m in program.meshes]
-            compiled = (_PartsStep(compiled, devices, mesh.devices.flat[0]) if len(set(devices)) > 1
-                        else _PartsStep(compiled))
+            compiled = (_PartsStep(compiled, devices, program.state_after, scheduler.pool)
+                        if len(set(devices)) > 1 else _PartsStep(compiled))
         else:
             compiled = program.compile(compiler_options=_compile_options(num_seeds, mesh))
     scheduler.programs[_program_name(kind, cfg, num_seeds, mesh)] = compiled
@@ -808,31 +848,58 @@ def _freeze(frozen: np.ndarray, new_state, state, metrics: dict, last: dict, lay
     return new_state, metrics
 
 
+def _resolved(metrics):
+    """The metrics of a step: a dict, or a future of one (:class:`_PartsStep`)."""
+    return metrics.result() if isinstance(metrics, concurrent.futures.Future) else metrics
+
+
+def _discard(out) -> None:
+    """Wait for an iteration whose results will not be used, so that none of its work outlives
+    its run; its own errors (e.g. from a state that failed) are not the run's."""
+    try:
+        jax.block_until_ready((out[0], _resolved(out[1])))
+    except Exception:  # noqa: BLE001
+        pass
+
+
 def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout: _Layout, timer, scheduler,
                 progress_fn, label, t0):
-    """Iterations ``len(history) … stop − 1``; each iteration's checkpoint is written while the
-    next iteration runs on the device (the step returns before the device has finished), and
-    an exception or a stop request still writes the last finished iteration's checkpoint."""
-    iteration_s, pending = [], None
+    """Iterations ``len(history) … stop − 1``, each called before the metrics of the one before
+    are read: the step returns before the devices have finished (a split step's metrics are a
+    future), so the devices get the next iteration's programs while the host waits for this
+    one's metrics, writes the checkpoint of the one before and reports. A seed that fails in
+    iteration i is frozen as if the iterations ran one by one: iteration i + 1, already called
+    with its failed state, is discarded for it (its state and metrics are replaced by the ones it
+    keeps; the seeds are independent). An exception or a stop request still writes the last
+    finished iteration's checkpoint, and waits for the iteration under way."""
+    iteration_s, pending, ahead = [], None, None
 
     def save(done: int, st, hist):
         with timer("checkpoint_s"):
             checkpoint.save(ckpt_dir, layout.real(st), step=done,
                             metadata={**meta, **history_metadata(hist)})
 
+    def call(it: int, st):
+        return step(st, it_keys[:, it], jnp.asarray(it == 0))
+
     try:
+        t_it = None
         for it in range(len(history), stop):
             if scheduler.stop.is_set():
                 break
-            t_it = time.perf_counter()
-            if not iteration_s:  # the run's start-up (waits for its turns and slots included)
+            if ahead is None:  # the run's start-up (waits for its turns and slots included)
+                t_it = time.perf_counter()
                 timer["training_start_s"] = t_it - t0
-            new_state, metrics = step(state, it_keys[:, it], jnp.asarray(it == 0))
+                ahead = call(it, state)
+            (new_state, metrics), ahead = ahead, None
+            if it + 1 < stop and not scheduler.stop.is_set():
+                ahead = call(it + 1, new_state)
             if pending is not None:  # cleared first: a failed write is not tried again below
                 job, pending = pending, None
                 save(*job)
-            metrics = _host(layout.real(metrics))
+            metrics = _host(layout.real(_resolved(metrics)))
             iteration_s.append(time.perf_counter() - t_it)
+            t_it += iteration_s[-1]
             failed = np.asarray(history[-1]["seed_failed"]) if history and "seed_failed" in history[-1] \
                 else np.zeros(layout.num, bool)
             frozen = failed | ~_seed_ok(metrics)
@@ -853,6 +920,8 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
                 progress_fn({"run": label, "iteration": it + 1, "iterations": cfg.iterations,
                              "metrics": metrics})
     finally:
+        if ahead is not None:
+            _discard(ahead)
         if pending is not None:
             save(*pending)
     if scheduler.stop.is_set() and len(history) < stop:

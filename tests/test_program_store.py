@@ -42,6 +42,10 @@ def test_a_stored_program_is_lowered_without_tracing_and_computes_the_same(model
     assert len(list(tmp_path.glob("*.exported"))) == 1
     first_out = stored.compile()(carry, first)
     assert_trees_within(first_out, traced, tol)
+    # It takes only the leaves that the traced program reads (JAX drops the others from both), so
+    # that a call neither copies nor waits for the rest of the carry.
+    reads = stored.compile().reads
+    assert reads == runner._reads(_program().trace(cfg, carry, first).lower().compile()) and not all(reads)
     # A later process: a fresh store on the same folder and no jitted program in memory. The
     # part's Python must not run again, and the same module computes the same values.
     jax.clear_caches()

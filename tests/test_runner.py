@@ -119,8 +119,11 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
     compiled for the host's CPU, the others for the run's device. Here a second CPU device stands
     in for the host beside the run's device (split itself applies to runs on a GPU), so the carry
     is copied between two devices: a run of one seed equals that seed of the whole-program run of
-    two seeds to round-off (the tolerance of the parts test above), its new state lies on the
-    run's device and its learning curve was computed on the host's."""
+    two seeds to round-off (the tolerance of the parts test above). The new state's entries lie
+    where their parts computed them (the controllers on the host's device, the policy on the
+    run's); the rollouts read only the controllers and the key of the state, so the next
+    iteration's rollouts wait for this iteration's C-step, not for its S-step; the learning curve
+    is computed on the host's device, from a worker thread (the metrics are a future)."""
     from tolerances import assert_trees_within, scale_tol
 
     if len(jax.devices()) < 2:
@@ -134,14 +137,21 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
         monkeypatch.setattr(own, "host_mesh", lambda: host)
         split = runner.run(cfg, SEEDS[:1], tmp_path / "split", scheduler=own, stability=False)
         (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
-        state, metrics = step(runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1][:, 0],
-                              jax.numpy.asarray(True))
+        state0, keys = runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1][:, 0]
+        state, metrics = step(state0, keys, jax.numpy.asarray(True))
+        assert isinstance(metrics, concurrent.futures.Future)
+        metrics = metrics.result()
     assert step.devices == tuple(host_device if names in runner.HOST_PARTS else run_device
                                  for names in runner.SPLIT_PARTS)
     devices = lambda tree: {d for leaf in jax.tree_util.tree_leaves(tree) for d in leaf.devices()}  # noqa: E731
-    assert devices(state) == {run_device}
+    assert devices((state.traj, state.eta, state.prev)) == {host_device}  # the C-step's
+    assert devices((state.policy, state.dyn_prior)) == {run_device}  # the S-step's, the dynamics fit's
     assert devices(metrics["final_state_mse_policy"]) == {host_device}  # the learning curve's
     assert devices(metrics["sstep_loss"]) == {run_device}
+    paths = [jax.tree_util.keystr(path) for path, _ in
+             jax.tree_util.tree_flatten_with_path(({"state": state0, "key": keys}, True))[0]]
+    rollouts_read = {path for path, read in zip(paths, step.reads[0], strict=True) if read}
+    assert rollouts_read and all(p.startswith(("[0]['state'].traj.", "[0]['key']")) for p in rollouts_read)
     first = jax.tree_util.tree_map(lambda a: a[:, :1], result["history"])
     assert_trees_within(split["history"], first, scale_tol(first))
     robust = jax.tree_util.tree_map(lambda a: a[:1], result["robustness"])
@@ -168,6 +178,38 @@ def test_iteration_programs_resolve_per_run_and_platform():
     assert runner.iteration_programs_for("whole", gmr, "gpu") == "whole"
     with pytest.raises(ValueError, match="iteration_programs: 'some' is not one of auto, whole, parts, split"):
         runner.Scheduler(iteration_programs="some")
+
+
+def test_the_loop_calls_each_iteration_before_it_reads_the_one_before(tmp_path, scheduler):
+    """``runner._train_loop`` calls iteration i + 1 (with iteration i's new state) before it reads
+    iteration i's metrics, and never calls beyond the last iteration: the devices get the next
+    iteration's programs while the host waits, writes checkpoints and reports. A step of
+    recorded calls and futures stands in for the compiled iteration."""
+    events, mesh = [], scheduler.mesh_for(None)
+
+    class Metrics(concurrent.futures.Future):
+        def __init__(self, i):
+            super().__init__()
+            self.i = i
+            self.set_result({"ok": np.ones((1, 2), bool), "cost": np.full((1, 2), float(i))})
+
+        def result(self, timeout=None):
+            events.append(("read", self.i))
+            return super().result(timeout)
+
+    def step(state, keys, first):
+        i = len([e for e in events if e[0] == "call"])
+        events.append(("call", i, int(state["i"][0]), bool(first)))
+        return {"i": np.full(1, i + 1)}, Metrics(i)
+
+    cfg = small("mdgps", iterations=3)
+    state, history, iteration_s = runner._train_loop(
+        cfg, step, {"i": np.zeros(1, int)}, [], np.zeros((1, 3, 2), np.uint32), 3, tmp_path / "ckpt",
+        {"seeds": [0]}, runner._Layout(mesh, 1), runner.Timer(), scheduler, None, "", time.perf_counter())
+    assert events == [("call", 0, 0, True), ("call", 1, 1, False), ("read", 0), ("call", 2, 2, False),
+                      ("read", 1), ("read", 2)]
+    assert int(state["i"][0]) == 3 and [float(h["cost"][0, 0]) for h in history] == [0, 1, 2]
+    assert len(iteration_s) == 3 and checkpoint.all_steps(tmp_path / "ckpt") == [1, 2, 3]
 
 
 def test_history_keeps_its_dtypes_through_a_checkpoint():
