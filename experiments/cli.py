@@ -323,6 +323,11 @@ def setup_jax(precision: str, autotune: bool = False, deterministic: bool = True
     os.environ["XLA_FLAGS"] = wanted
     if compilation_cache != "none":
         jax.config.update("jax_compilation_cache_dir", compilation_cache)
+        # Every program, not only those compiling for a second or more (JAX's default): a warm
+        # run's small programs (keys, checks, the stability's Jacobians) then load instead of
+        # compiling, each a tenth of a second or more beside the other runs (RESULTS.md,
+        # twenty-sixth session).
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     backend = jax.default_backend()  # starts the backend
     if late and backend == "gpu":
         raise RuntimeError(f"XLA_FLAGS got {late!r} after JAX was imported, so XLA on the GPU does "

@@ -867,17 +867,26 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
     """Iterations ``len(history) … stop − 1``, each called before the metrics of the one before
     are read: the step returns before the devices have finished (a split step's metrics are a
     future), so the devices get the next iteration's programs while the host waits for this
-    one's metrics, writes the checkpoint of the one before and reports. A seed that fails in
+    one's metrics and reports. Each iteration's checkpoint is written by a thread of the
+    scheduler's pool while the loop goes on (one at a time, in order; a failed write raises at
+    the next one or at the end, and no later checkpoint is written). A seed that fails in
     iteration i is frozen as if the iterations ran one by one: iteration i + 1, already called
     with its failed state, is discarded for it (its state and metrics are replaced by the ones it
     keeps; the seeds are independent). An exception or a stop request still writes the last
     finished iteration's checkpoint, and waits for the iteration under way."""
-    iteration_s, pending, ahead = [], None, None
+    iteration_s, pending, ahead, writing = [], None, None, None
 
     def save(done: int, st, hist):
         with timer("checkpoint_s"):
             checkpoint.save(ckpt_dir, layout.real(st), step=done,
                             metadata={**meta, **history_metadata(hist)})
+
+    def written():
+        """Wait for the checkpoint being written; raises its error."""
+        nonlocal writing
+        if writing is not None:
+            job, writing = writing, None
+            job.result()
 
     def call(it: int, st):
         return step(st, it_keys[:, it], jnp.asarray(it == 0))
@@ -896,7 +905,8 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
                 ahead = call(it + 1, new_state)
             if pending is not None:  # cleared first: a failed write is not tried again below
                 job, pending = pending, None
-                save(*job)
+                written()
+                writing = scheduler.pool.submit(save, *job)
             metrics = _host(layout.real(_resolved(metrics)))
             iteration_s.append(time.perf_counter() - t_it)
             t_it += iteration_s[-1]
@@ -922,6 +932,7 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
     finally:
         if ahead is not None:
             _discard(ahead)
+        written()
         if pending is not None:
             save(*pending)
     if scheduler.stop.is_set() and len(history) < stop:
@@ -986,7 +997,7 @@ def in_process_iteration_programs(choice: str, cfg: config.Config) -> str:
 
 
 # JAX settings a child run takes from its parent (the CLI sets them before the first computation).
-_CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir")
+_CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
 # Held while a child starts: it inherits the environment with JAX_PLATFORMS=cpu.
 _SPAWN_LOCK = threading.Lock()
 
