@@ -493,8 +493,14 @@ class _PartsStep:
     new state's entries stay where their parts computed them (``mdgps.new_state``). The parts
     after the first ``state_after`` (those that only add metrics: the learning curve) are then
     called from a thread of ``pool`` and the metrics are a ``concurrent.futures.Future`` of the
-    dict, so that the next iteration can be called at once: its rollouts run on the host while
-    this iteration's S-step runs on the GPU (the runner calls it before it reads the metrics)."""
+    dict, so that the next iteration can be called at once.
+
+    Given the next iteration's keys (``next_keys``), the next iteration's rollouts are called from
+    a thread of ``pool`` as soon as the controllers they sample are computed (the C-step), where
+    they read nothing else of the state: on a GPU the call of a program with loops (the S-step)
+    returns only when the GPU has nearly finished it (XLA's GPU loops are driven from the calling
+    thread), so the rollouts would otherwise wait for it. The next call, with that state's
+    controllers and those keys, takes their samples."""
 
     def __init__(self, programs, devices=None, state_after: int | None = None, pool=None):
         self.programs = tuple(programs)
@@ -502,16 +508,35 @@ class _PartsStep:
         self.reads = None if devices is None else tuple(_reads(p) for p in self.programs)
         self.state_after = len(self.programs) if state_after is None or devices is None else state_after
         self.pool = pool
+        self._rollouts_read_only_controllers = None
+        self._prefetched: dict = {}  # (id of the controllers, id of the keys) → (them, keys, future)
 
-    def __call__(self, state, keys, first):
+    def __call__(self, state, keys, first, next_keys=None):
         carry = {"state": state, "key": keys}
         if self.devices is None:
             for program in self.programs:
                 carry.update(program(carry, first))
             return mdgps.iteration_result(carry)
         copies: dict = {}
-        for index in range(self.state_after):
+        if self._rollouts_read_only_controllers is None:
+            paths = jax.tree_util.tree_flatten_with_path((carry, first))[0]
+            self._rollouts_read_only_controllers = all(
+                jax.tree_util.keystr(path).startswith(("[0]['state'].traj.", "[0]['key']"))
+                for (path, _), read in zip(paths, self.reads[0], strict=True) if read)
+        found = self._prefetched.pop((id(state.traj), id(keys)), None)
+        start = 0
+        if found is not None and found[0] is state.traj and found[1] is keys and not bool(first):
+            carry.update(found[2].result())
+            start = 1
+        prefetch = next_keys is not None and self._rollouts_read_only_controllers
+        for index in range(start, self.state_after):
             carry.update(self._call(index, carry, first, copies))
+            if prefetch and "traj" in carry:
+                prefetch = False
+                upcoming = state._replace(**{field: carry[entry] for field, entry in mdgps.STATE_ENTRIES.items()
+                                             if entry in carry})  # the rest is not read
+                self._prefetched[id(carry["traj"]), id(next_keys)] = (carry["traj"], next_keys, self.pool.submit(
+                    self._call, 0, {"state": upcoming, "key": next_keys}, jnp.asarray(False), {}))
         later = range(self.state_after, len(self.programs))
         if not later:
             return mdgps.iteration_result(carry)
@@ -888,8 +913,12 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
             job, writing = writing, None
             job.result()
 
+    keys = [it_keys[:, it] for it in range(stop)]  # one array each: a split step matches them by identity
+
     def call(it: int, st):
-        return step(st, it_keys[:, it], jnp.asarray(it == 0))
+        if isinstance(step, _PartsStep) and it + 1 < stop:
+            return step(st, keys[it], jnp.asarray(it == 0), next_keys=keys[it + 1])
+        return step(st, keys[it], jnp.asarray(it == 0))
 
     try:
         t_it = None

@@ -122,8 +122,9 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
     two seeds to round-off (the tolerance of the parts test above). The new state's entries lie
     where their parts computed them (the controllers on the host's device, the policy on the
     run's); the rollouts read only the controllers and the key of the state, so the next
-    iteration's rollouts wait for this iteration's C-step, not for its S-step; the learning curve
-    is computed on the host's device, from a worker thread (the metrics are a future)."""
+    iteration's rollouts, called as soon as the C-step has finished, give the samples that the
+    next call would compute; the learning curve is computed on the host's device, from a worker
+    thread (the metrics are a future)."""
     from tolerances import assert_trees_within, scale_tol
 
     if len(jax.devices()) < 2:
@@ -137,10 +138,18 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
         monkeypatch.setattr(own, "host_mesh", lambda: host)
         split = runner.run(cfg, SEEDS[:1], tmp_path / "split", scheduler=own, stability=False)
         (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
-        state0, keys = runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1][:, 0]
-        state, metrics = step(state0, keys, jax.numpy.asarray(True))
+        state0, all_keys = runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1]
+        keys, next_keys = all_keys[:, 0], all_keys[:, 1]
+        state, metrics = step(state0, keys, jax.numpy.asarray(True), next_keys=next_keys)
         assert isinstance(metrics, concurrent.futures.Future)
         metrics = metrics.result()
+        # The next iteration's rollouts were called as soon as the C-step had computed the
+        # controllers; the next call takes their samples and computes what it computes without.
+        assert len(step._prefetched) == 1
+        prefetched = step(state, next_keys, jax.numpy.asarray(False))
+        assert not step._prefetched
+        direct = step(state, next_keys, jax.numpy.asarray(False))
+        assert_trees_within((prefetched[0], prefetched[1].result()), (direct[0], direct[1].result()), 0.0)
     assert step.devices == tuple(host_device if names in runner.HOST_PARTS else run_device
                                  for names in runner.SPLIT_PARTS)
     devices = lambda tree: {d for leaf in jax.tree_util.tree_leaves(tree) for d in leaf.devices()}  # noqa: E731
