@@ -616,16 +616,6 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
     return compiled
 
 
-def evaluation_mesh(cfg: config.Config, num_seeds: int, scheduler: Scheduler, mesh):
-    """Where a run of ``num_seeds`` seeds on ``mesh`` evaluates its policies (robustness and
-    stability): where its iteration is split (``iteration_programs_for``), on the host's CPU
-    with the learning curve (its rollouts' host callbacks then hold no GPU stream; one seed's
-    batch of rollouts is small), else on the run's mesh."""
-    split = iteration_programs_for(scheduler.iteration_programs, cfg, _platform(mesh), num_seeds,
-                                   mesh.size) == "split"
-    return scheduler.host_mesh() if split else mesh
-
-
 def evaluate_robustness(cfg: config.Config, params, timer: Timer | None = None, program=None,
                         layout: _Layout | None = None) -> dict:
     """Robustness of every seed's policy (leading seed axis of ``params``): the task's fixed
@@ -795,8 +785,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
         write_policy_rollouts(run_dir, list(seeds), result.pop("training_X"), result["robustness"]["X"])
         if stability:
-            on = evaluation_mesh(cfg, k_init.shape[0], scheduler, layout.mesh).devices.flat[0]
-            with timer("stability_s"), jax.default_device(on):
+            with timer("stability_s"):
                 params = jax.device_get(layout.real(state.policy.params))
                 result["stability"] = stability_lib.measure(cfg, params, result["robustness"]["X"])._asdict()
     result["wall_s"] = time.perf_counter() - t0
@@ -842,17 +831,12 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
                             layout.mesh)
     later = scheduler.tracing.later(ticket)
     if policies.spec_for(cfg) is not None and stop == cfg.iterations:
-        mesh = evaluation_mesh(cfg, num, scheduler, layout.mesh)
-
         def robustness_program():
             with scheduler.tracing(later):
-                lowered = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler, mesh)
+                lowered = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler, layout.mesh)
             # In a slot: beside training, but after the other runs' iteration programs, which then
             # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
-            compiled = _compiled("robustness", cfg, num, lowered, timer, scheduler, slot=True, mesh=mesh)
-            if mesh is layout.mesh:
-                return compiled
-            return lambda params: compiled(jax.device_put(params, mesh.devices.flat[0]))
+            return _compiled("robustness", cfg, num, lowered, timer, scheduler, slot=True, mesh=layout.mesh)
         robustness = scheduler.pool.submit(robustness_program)
     else:
         scheduler.tracing.release(later)
