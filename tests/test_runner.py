@@ -136,7 +136,7 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
     monkeypatch.setattr(runner, "iteration_programs_for", lambda *args: "split")
     with runner.Scheduler(compile_jobs=1, devices=1, iteration_programs="split") as own:
         monkeypatch.setattr(own, "host_mesh", lambda: host)
-        split = runner.run(cfg, SEEDS[:1], tmp_path / "split", scheduler=own, stability=False)
+        split = runner.run(cfg, SEEDS[:1], tmp_path / "split", scheduler=own)
         (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
         state0, all_keys = runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1]
         keys, next_keys = all_keys[:, 0], all_keys[:, 1]
@@ -165,6 +165,8 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
     assert_trees_within(split["history"], first, scale_tol(first))
     robust = jax.tree_util.tree_map(lambda a: a[:1], result["robustness"])
     assert_trees_within(split["robustness"], robust, scale_tol(robust))
+    stable = jax.tree_util.tree_map(lambda a: a[:1], result["stability"])
+    assert_trees_within(split["stability"], stable, scale_tol(stable))
 
 
 def test_iteration_programs_resolve_per_run_and_platform():
