@@ -19,6 +19,8 @@ the iteration in flight, writes its checkpoint and raises :class:`Interrupted`.
 Progress is reported through ``progress_fn(event)``, an event being a dict with ``run`` (the
 run's label) and either ``iteration``, ``iterations`` and ``metrics`` (host numpy arrays, after
 every iteration) or ``message`` (resumed, a corrupt checkpoint set aside). Nothing here prints.
+The loop calls each iteration before it reads the one before, so an event of iteration i comes
+while iteration i + 1 is under way: a callback reports, it cannot change the next iteration.
 """
 
 from __future__ import annotations
