@@ -19,8 +19,9 @@ the iteration in flight, writes its checkpoint and raises :class:`Interrupted`.
 Progress is reported through ``progress_fn(event)``, an event being a dict with ``run`` (the
 run's label) and either ``iteration``, ``iterations`` and ``metrics`` (host numpy arrays, after
 every iteration) or ``message`` (resumed, a corrupt checkpoint set aside). Nothing here prints.
-The loop calls each iteration before it reads the one before, so an event of iteration i comes
-while iteration i + 1 is under way: a callback reports, it cannot change the next iteration.
+A split run's loop calls each iteration before it reads the one before (``_train_loop``), so
+its event of iteration i comes while iteration i + 1 is under way: a callback reports, it
+cannot count on changing the next iteration.
 """
 
 from __future__ import annotations
@@ -276,6 +277,9 @@ class Scheduler:
         self.programs: dict = {}
         self._meshes: dict = {}
         self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gmr-jax")
+        # The training loops' own work (checkpoint writes, a split step's host parts), apart from
+        # the pool's tasks that wait for tracing turns and compile slots.
+        self.loop_pool = concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gmr-jax-loop")
         self.stop = threading.Event()
 
     def request_stop(self) -> None:
@@ -303,6 +307,7 @@ class Scheduler:
 
     def close(self) -> None:
         self.pool.shutdown(wait=True, cancel_futures=True)
+        self.loop_pool.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self):
         return self
@@ -495,25 +500,26 @@ class _PartsStep:
     new state's entries stay where their parts computed them (``mdgps.new_state``). The parts
     after the first ``state_after`` (those that only add metrics: the learning curve) are then
     called from a thread of ``pool`` and the metrics are a ``concurrent.futures.Future`` of the
-    dict, so that the next iteration can be called at once.
+    dict, so that the next iteration can be called at once (``asynchronous``: the runner does).
 
-    Given the next iteration's keys (``next_keys``), the next iteration's rollouts are called from
-    a thread of ``pool`` as soon as the controllers they sample are computed (the C-step), where
-    they read nothing else of the state: on a GPU the call of a program with loops (the S-step)
-    returns only when the GPU has nearly finished it (XLA's GPU loops are driven from the calling
-    thread), so the rollouts would otherwise wait for it. The next call, with that state's
-    controllers and those keys, takes their samples."""
+    Given the next iteration's keys (``next_keys``) and a run's dict ``prefetched``, the next
+    iteration's rollouts are called from a thread of ``pool`` as soon as the controllers they
+    sample are computed (the C-step), where they read nothing else of the state: on a GPU the call
+    of a program with loops (the S-step) returns only when the GPU has nearly finished it (XLA's
+    GPU loops are driven from the calling thread), so the rollouts would otherwise wait for it.
+    ``prefetched`` then holds the controllers, the keys and the future of the samples; the next
+    call with that dict, that state's controllers and those keys (the same objects) takes them."""
 
     def __init__(self, programs, devices=None, state_after: int | None = None, pool=None):
         self.programs = tuple(programs)
         self.devices = None if devices is None else tuple(devices)
+        self.asynchronous = devices is not None
         self.reads = None if devices is None else tuple(_reads(p) for p in self.programs)
         self.state_after = len(self.programs) if state_after is None or devices is None else state_after
         self.pool = pool
         self._rollouts_read_only_controllers = None
-        self._prefetched: dict = {}  # (id of the controllers, id of the keys) → (them, keys, future)
 
-    def __call__(self, state, keys, first, next_keys=None):
+    def __call__(self, state, keys, first, next_keys=None, prefetched: dict | None = None):
         carry = {"state": state, "key": keys}
         if self.devices is None:
             for program in self.programs:
@@ -525,19 +531,23 @@ class _PartsStep:
             self._rollouts_read_only_controllers = all(
                 jax.tree_util.keystr(path).startswith(("[0]['state'].traj.", "[0]['key']"))
                 for (path, _), read in zip(paths, self.reads[0], strict=True) if read)
-        found = self._prefetched.pop((id(state.traj), id(keys)), None)
         start = 0
-        if found is not None and found[0] is state.traj and found[1] is keys and not bool(first):
-            carry.update(found[2].result())
-            start = 1
-        prefetch = next_keys is not None and self._rollouts_read_only_controllers
+        if prefetched:
+            found = dict(prefetched)
+            prefetched.clear()
+            if found["traj"] is state.traj and found["keys"] is keys and not bool(first):
+                carry.update(found["samples"].result())
+                start = 1
+            else:
+                _wait_quietly(found["samples"])
+        prefetch = next_keys is not None and prefetched is not None and self._rollouts_read_only_controllers
         for index in range(start, self.state_after):
             carry.update(self._call(index, carry, first, copies))
             if prefetch and "traj" in carry:
                 prefetch = False
                 upcoming = state._replace(**{field: carry[entry] for field, entry in mdgps.STATE_ENTRIES.items()
                                              if entry in carry})  # the rest is not read
-                self._prefetched[id(carry["traj"]), id(next_keys)] = (carry["traj"], next_keys, self.pool.submit(
+                prefetched.update(traj=carry["traj"], keys=next_keys, samples=self.pool.submit(
                     self._call, 0, {"state": upcoming, "key": next_keys}, jnp.asarray(False), {}))
         later = range(self.state_after, len(self.programs))
         if not later:
@@ -610,7 +620,7 @@ def _compiled(kind: str, cfg: config.Config, num_seeds: int, program, timer: Tim
                     lambda part, m: part.compile(compiler_options=_compile_options(num_seeds, m)),
                     program.parts, program.meshes))
             devices = [m.devices.flat[0] for m in program.meshes]
-            compiled = (_PartsStep(compiled, devices, program.state_after, scheduler.pool)
+            compiled = (_PartsStep(compiled, devices, program.state_after, scheduler.loop_pool)
                         if len(set(devices)) > 1 else _PartsStep(compiled))
         else:
             compiled = program.compile(compiler_options=_compile_options(num_seeds, mesh))
@@ -861,18 +871,22 @@ def _seed_ok(metrics: dict) -> np.ndarray:
     return ok.reshape(ok.shape[0], -1).all(axis=1)
 
 
-def _freeze(frozen: np.ndarray, new_state, state, metrics: dict, last: dict, layout: _Layout):
-    """The failed seeds (``frozen`` [S]) keep their state and metrics of the last iteration; the
-    others take the new ones. Returns (state, metrics)."""
+def _kept(frozen: np.ndarray, new_state, state, layout: _Layout):
+    """The state of the frozen seeds (``frozen`` [S]) from ``state``, the others' from ``new_state``."""
     keep = layout.device(jnp.asarray(~frozen))
 
     def pick(new, old):
         return jnp.where(keep.reshape(keep.shape + (1,) * (new.ndim - 1)), new, old)
 
-    new_state = jax.tree_util.tree_map(pick, new_state, state)
+    return jax.tree_util.tree_map(pick, new_state, state)
+
+
+def _freeze(frozen: np.ndarray, new_state, state, metrics: dict, last: dict, layout: _Layout):
+    """The failed seeds (``frozen`` [S]) keep their state and metrics of the last iteration; the
+    others take the new ones. Returns (state, metrics)."""
     metrics = {k: np.where(frozen.reshape(frozen.shape + (1,) * (np.ndim(v) - 1)), np.asarray(last[k]), v)
                if k in last else v for k, v in metrics.items()}
-    return new_state, metrics
+    return _kept(frozen, new_state, state, layout), metrics
 
 
 def _resolved(metrics):
@@ -880,28 +894,39 @@ def _resolved(metrics):
     return metrics.result() if isinstance(metrics, concurrent.futures.Future) else metrics
 
 
-def _discard(out) -> None:
-    """Wait for an iteration whose results will not be used, so that none of its work outlives
+def _wait_quietly(*work) -> None:
+    """Wait for work whose results will not be used (arrays, futures), so that none of it outlives
     its run; its own errors (e.g. from a state that failed) are not the run's."""
     try:
-        jax.block_until_ready((out[0], _resolved(out[1])))
+        jax.block_until_ready([w.result() if isinstance(w, concurrent.futures.Future) else w for w in work])
     except Exception:  # noqa: BLE001
         pass
 
 
 def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout: _Layout, timer, scheduler,
                 progress_fn, label, t0):
-    """Iterations ``len(history) … stop − 1``, each called before the metrics of the one before
-    are read: the step returns before the devices have finished (a split step's metrics are a
-    future), so the devices get the next iteration's programs while the host waits for this
-    one's metrics and reports. Each iteration's checkpoint is written by a thread of the
-    scheduler's pool while the loop goes on (one at a time, in order; a failed write raises at
-    the next one or at the end, and no later checkpoint is written). A seed that fails in
-    iteration i is frozen as if the iterations ran one by one: iteration i + 1, already called
-    with its failed state, is discarded for it (its state and metrics are replaced by the ones it
-    keeps; the seeds are independent). An exception or a stop request still writes the last
-    finished iteration's checkpoint, and waits for the iteration under way."""
-    iteration_s, pending, ahead, writing = [], None, None, None
+    """Iterations ``len(history) … stop − 1``.
+
+    An asynchronous step (``_PartsStep.asynchronous``: a split run's, whose host work runs in
+    worker threads) is called for iteration i + 1 before iteration i's metrics are read, so that
+    the devices get its programs while the host waits, reports and checkpoints; given the next
+    keys it also calls the next rollouts ahead. Other steps are called one iteration at a time:
+    their calls return only when their work is nearly done (a GPU's loops are driven from the
+    calling thread; a CPU program with host callbacks runs in it), and a progress event then comes
+    before the next iteration starts.
+
+    A seed that fails is frozen: its state and metrics stay those of its last good iteration. An
+    iteration called before the failure was known runs that seed from its failed state; its part
+    is replaced (the seeds are independent), and later iterations run it from its kept state.
+
+    Each iteration's checkpoint is written by a thread of the scheduler's loop pool while the loop
+    goes on, one at a time, in order; a failed write raises at the next one or at the end, and no
+    later checkpoint is written. A stop request lets the iteration under way finish and be
+    checkpointed. An exception still writes the last finished iteration's checkpoint (a failed
+    write then becomes a note of that exception), then waits for the iteration under way."""
+    ahead_ok = getattr(step, "asynchronous", False)
+    iteration_s, pending, ahead, writing, error, prefetched = [], None, None, None, None, {}
+    keys = {it: it_keys[:, it] for it in range(len(history), stop)}  # one array each: prefetches match by identity
 
     def save(done: int, st, hist):
         with timer("checkpoint_s"):
@@ -915,34 +940,33 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
             job, writing = writing, None
             job.result()
 
-    keys = [it_keys[:, it] for it in range(stop)]  # one array each: a split step matches them by identity
-
     def call(it: int, st):
-        if isinstance(step, _PartsStep) and it + 1 < stop:
-            return step(st, keys[it], jnp.asarray(it == 0), next_keys=keys[it + 1])
+        if ahead_ok and it + 1 < stop:
+            return step(st, keys[it], jnp.asarray(it == 0), next_keys=keys[it + 1], prefetched=prefetched)
         return step(st, keys[it], jnp.asarray(it == 0))
 
     try:
         t_it = None
         for it in range(len(history), stop):
-            if scheduler.stop.is_set():
-                break
-            if ahead is None:  # the run's start-up (waits for its turns and slots included)
+            if ahead is None:
+                if scheduler.stop.is_set():
+                    break
                 t_it = time.perf_counter()
-                timer["training_start_s"] = t_it - t0
+                if not iteration_s:  # the run's start-up (waits for its turns and slots included)
+                    timer["training_start_s"] = t_it - t0
                 ahead = call(it, state)
             (new_state, metrics), ahead = ahead, None
-            if it + 1 < stop and not scheduler.stop.is_set():
-                ahead = call(it + 1, new_state)
+            failed = np.asarray(history[-1]["seed_failed"]) if history and "seed_failed" in history[-1] \
+                else np.zeros(layout.num, bool)
+            if ahead_ok and it + 1 < stop and not scheduler.stop.is_set():
+                ahead = call(it + 1, _kept(failed, new_state, state, layout) if failed.any() else new_state)
             if pending is not None:  # cleared first: a failed write is not tried again below
                 job, pending = pending, None
                 written()
-                writing = scheduler.pool.submit(save, *job)
+                writing = scheduler.loop_pool.submit(save, *job)
             metrics = _host(layout.real(_resolved(metrics)))
             iteration_s.append(time.perf_counter() - t_it)
             t_it += iteration_s[-1]
-            failed = np.asarray(history[-1]["seed_failed"]) if history and "seed_failed" in history[-1] \
-                else np.zeros(layout.num, bool)
             frozen = failed | ~_seed_ok(metrics)
             if frozen.all() or (frozen.any() and not history):
                 raise _failure(cfg, it + 1, metrics, ckpt_dir)
@@ -960,12 +984,20 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
             if progress_fn is not None:
                 progress_fn({"run": label, "iteration": it + 1, "iterations": cfg.iterations,
                              "metrics": metrics})
+    except BaseException as err:
+        error = err
+        raise
     finally:
-        if ahead is not None:
-            _discard(ahead)
-        written()
-        if pending is not None:
-            save(*pending)
+        try:
+            written()
+            if pending is not None:
+                save(*pending)
+        except Exception as write_error:
+            if error is None:
+                raise
+            error.add_note(f"also, writing a checkpoint failed: {write_error}")
+        finally:
+            _wait_quietly(*(ahead or ()), *prefetched.values())
     if scheduler.stop.is_set() and len(history) < stop:
         if not history:
             raise Interrupted("stopped before its first iteration, with no checkpoint (--resume starts it "

@@ -140,16 +140,17 @@ def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monke
         (step,) = [p for name, p in own.programs.items() if name[0] == "step"]
         state0, all_keys = runner.initial_state(cfg, SEEDS[:1]), runner.seed_keys(cfg, SEEDS[:1])[1]
         keys, next_keys = all_keys[:, 0], all_keys[:, 1]
-        state, metrics = step(state0, keys, jax.numpy.asarray(True), next_keys=next_keys)
+        prefetched: dict = {}
+        state, metrics = step(state0, keys, jax.numpy.asarray(True), next_keys=next_keys, prefetched=prefetched)
         assert isinstance(metrics, concurrent.futures.Future)
         metrics = metrics.result()
         # The next iteration's rollouts were called as soon as the C-step had computed the
         # controllers; the next call takes their samples and computes what it computes without.
-        assert len(step._prefetched) == 1
-        prefetched = step(state, next_keys, jax.numpy.asarray(False))
-        assert not step._prefetched
+        assert prefetched["traj"] is state.traj and prefetched["keys"] is next_keys
+        ahead = step(state, next_keys, jax.numpy.asarray(False), prefetched=prefetched)
+        assert not prefetched
         direct = step(state, next_keys, jax.numpy.asarray(False))
-        assert_trees_within((prefetched[0], prefetched[1].result()), (direct[0], direct[1].result()), 0.0)
+        assert_trees_within((ahead[0], ahead[1].result()), (direct[0], direct[1].result()), 0.0)
     assert step.devices == tuple(host_device if names in runner.HOST_PARTS else run_device
                                  for names in runner.SPLIT_PARTS)
     devices = lambda tree: {d for leaf in jax.tree_util.tree_leaves(tree) for d in leaf.devices()}  # noqa: E731
@@ -191,36 +192,103 @@ def test_iteration_programs_resolve_per_run_and_platform():
         runner.Scheduler(iteration_programs="some")
 
 
+class _RecordedStep:
+    """An asynchronous step (as a split run's) of recorded calls: state {"x": [S]} → x + 1, metrics
+    a future whose reading is recorded, "ok" False for the (iteration, seed) pairs in ``bad``."""
+
+    asynchronous = True
+
+    def __init__(self, seeds: int, bad=()):
+        self.seeds, self.bad, self.events, self.inputs = seeds, set(bad), [], []
+
+    def __call__(self, state, keys, first, next_keys=None, prefetched=None):
+        i = len(self.inputs)
+        self.inputs.append(np.asarray(state["x"]).tolist())
+        self.events.append(("call", i, bool(first), next_keys is not None))
+        ok = np.array([[(i, s) not in self.bad] * 2 for s in range(self.seeds)])
+        events = self.events
+
+        class Metrics(concurrent.futures.Future):
+            def result(self, timeout=None):
+                events.append(("read", i))
+                return super().result(timeout)
+
+        metrics = Metrics()
+        metrics.set_result({"ok": ok, "cost": np.full((self.seeds, 2), float(i))})
+        return {"x": np.asarray(state["x"]) + 1}, metrics
+
+
+def _recorded_loop(step, scheduler, path, iterations, progress_fn=None):
+    cfg = small("mdgps", iterations=iterations)
+    return runner._train_loop(
+        cfg, step, {"x": np.zeros(step.seeds, int)}, [], np.zeros((step.seeds, iterations, 2), np.uint32),
+        iterations, path, {"seeds": list(range(step.seeds))}, runner._Layout(scheduler.mesh_for(None), step.seeds),
+        runner.Timer(), scheduler, progress_fn, "", time.perf_counter())
+
+
 def test_the_loop_calls_each_iteration_before_it_reads_the_one_before(tmp_path, scheduler):
-    """``runner._train_loop`` calls iteration i + 1 (with iteration i's new state) before it reads
-    iteration i's metrics, and never calls beyond the last iteration: the devices get the next
-    iteration's programs while the host waits, writes checkpoints and reports. A step of
-    recorded calls and futures stands in for the compiled iteration."""
-    events, mesh = [], scheduler.mesh_for(None)
-
-    class Metrics(concurrent.futures.Future):
-        def __init__(self, i):
-            super().__init__()
-            self.i = i
-            self.set_result({"ok": np.ones((1, 2), bool), "cost": np.full((1, 2), float(i))})
-
-        def result(self, timeout=None):
-            events.append(("read", self.i))
-            return super().result(timeout)
-
-    def step(state, keys, first):
-        i = len([e for e in events if e[0] == "call"])
-        events.append(("call", i, int(state["i"][0]), bool(first)))
-        return {"i": np.full(1, i + 1)}, Metrics(i)
-
-    cfg = small("mdgps", iterations=3)
-    state, history, iteration_s = runner._train_loop(
-        cfg, step, {"i": np.zeros(1, int)}, [], np.zeros((1, 3, 2), np.uint32), 3, tmp_path / "ckpt",
-        {"seeds": [0]}, runner._Layout(mesh, 1), runner.Timer(), scheduler, None, "", time.perf_counter())
-    assert events == [("call", 0, 0, True), ("call", 1, 1, False), ("read", 0), ("call", 2, 2, False),
-                      ("read", 1), ("read", 2)]
-    assert int(state["i"][0]) == 3 and [float(h["cost"][0, 0]) for h in history] == [0, 1, 2]
+    """``runner._train_loop`` with an asynchronous step calls iteration i + 1 (with iteration i's
+    new state and the keys of iteration i + 2) before it reads iteration i's metrics, and never
+    calls beyond the last iteration: the devices get the next iteration's programs while the host
+    waits, writes checkpoints and reports."""
+    step = _RecordedStep(1)
+    state, history, iteration_s = _recorded_loop(step, scheduler, tmp_path / "ckpt", 3)
+    assert step.events == [("call", 0, True, True), ("call", 1, False, True), ("read", 0),
+                           ("call", 2, False, False), ("read", 1), ("read", 2)]
+    assert step.inputs == [[0], [1], [2]] and int(state["x"][0]) == 3
+    assert [float(h["cost"][0, 0]) for h in history] == [0, 1, 2]
     assert len(iteration_s) == 3 and checkpoint.all_steps(tmp_path / "ckpt") == [1, 2, 3]
+
+
+def test_a_seed_that_fails_while_the_next_iteration_runs_is_frozen_from_then_on(tmp_path, scheduler):
+    """Seed 1 fails in iteration 2, which is read after iteration 3 was called from its failed
+    state: iteration 3's part of seed 1 is replaced by its kept state and metrics, and iteration 4
+    is called with that kept state; seed 0 goes on as it would alone."""
+    step, messages = _RecordedStep(2, bad=[(1, 1)]), []
+    state, history, _ = _recorded_loop(step, scheduler, tmp_path / "ckpt", 4,
+                                       lambda e: messages.append(e.get("message")))
+    assert step.inputs == [[0, 0], [1, 1], [2, 2], [3, 1]]
+    assert np.asarray(state["x"]).tolist() == [4, 1]
+    assert [h["seed_failed"].tolist() for h in history] == [[False, False], [False, True], [False, True],
+                                                            [False, True]]
+    assert [h["cost"][:, 0].tolist() for h in history] == [[0, 0], [1, 0], [2, 0], [3, 0]]
+    assert any(m and "seed 1 failed in iteration 2" in m for m in messages)
+
+
+def test_a_stop_finishes_the_iteration_under_way(tmp_path):
+    """A stop requested at iteration 1's report: iteration 2, already called, is finished, reported
+    and checkpointed, and nothing more is called."""
+    step = _RecordedStep(1)
+    with runner.Scheduler(compile_jobs=1, devices=1) as own:
+        stop_at_first = lambda e: own.request_stop() if e.get("iteration") == 1 else None  # noqa: E731
+        with pytest.raises(runner.Interrupted, match="stopped after iteration 2 of 4"):
+            _recorded_loop(step, own, tmp_path / "ckpt", 4, stop_at_first)
+    assert len(step.inputs) == 2 and checkpoint.all_steps(tmp_path / "ckpt") == [1, 2]
+
+
+def test_a_failed_checkpoint_write_beside_the_loop_stops_it(tmp_path, scheduler, monkeypatch):
+    """The write of checkpoint 2 fails in its thread while the loop goes on: the next write raises
+    its error, and no later checkpoint is written."""
+    real = checkpoint.save
+
+    def full_at_2(path, state, step, metadata=None):
+        if step == 2:
+            raise checkpoint.CheckpointError("checkpoint step 2: No space left on device")
+        return real(path, state, step, metadata)
+
+    monkeypatch.setattr(checkpoint, "save", full_at_2)
+    with pytest.raises(checkpoint.CheckpointError, match="step 2"):
+        _recorded_loop(_RecordedStep(1), scheduler, tmp_path / "ckpt", 4)
+    assert checkpoint.all_steps(tmp_path / "ckpt") == [1]
+
+
+def test_a_failure_with_the_next_iteration_under_way_keeps_the_checkpoints_before(tmp_path, scheduler):
+    """Every seed fails in iteration 3 while iteration 4 runs: TrainingError names iteration 3,
+    checkpoints 1 and 2 are written, and iteration 4 was waited for."""
+    step = _RecordedStep(1, bad=[(2, 0)])
+    with pytest.raises(runner.TrainingError, match=r"iteration 3: .* iterations ≤ 2"):
+        _recorded_loop(step, scheduler, tmp_path / "ckpt", 5)
+    assert len(step.inputs) == 4 and checkpoint.all_steps(tmp_path / "ckpt") == [1, 2]
 
 
 def test_history_keeps_its_dtypes_through_a_checkpoint():
