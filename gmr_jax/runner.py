@@ -752,8 +752,11 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         traced and compiled for that platform (the S-step's form, compiler options).
     Returns:
       dict with ``history`` (stacked metrics, leading axes [iteration, seed, ...]),
-      ``iteration_s``, ``wall_s``, ``timing`` (seconds per phase) and, for policies once every
-      iteration is done, ``robustness``, ``sweep`` and (with ``stability``) ``stability``.
+      ``iteration_s`` (seconds from the first call, or from the last iteration's metrics, to each
+      iteration's metrics: a split run calls the next iteration before it reads one, so its
+      first entry holds part of the second iteration and its last is short), ``wall_s``,
+      ``timing`` (seconds per phase) and, for policies once every iteration is done,
+      ``robustness``, ``sweep`` and (with ``stability``) ``stability``.
     Raises:
       TrainingError: non-finite values or a failed η search in the first iteration or for every
         seed still running; the checkpoints of the iterations before are intact. A seed that fails
