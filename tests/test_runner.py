@@ -282,6 +282,23 @@ def test_a_failed_checkpoint_write_beside_the_loop_stops_it(tmp_path, scheduler,
     assert checkpoint.all_steps(tmp_path / "ckpt") == [1]
 
 
+def test_a_failed_write_during_a_failure_becomes_its_note(tmp_path, scheduler, monkeypatch):
+    """Checkpoint 2's write fails in its thread while iteration 3 fails: the TrainingError is
+    raised (the user's one line names the iteration) and the write's error is its note."""
+    real = checkpoint.save
+
+    def full_at_2(path, state, step, metadata=None):
+        if step == 2:
+            raise checkpoint.CheckpointError("checkpoint step 2: No space left on device")
+        return real(path, state, step, metadata)
+
+    monkeypatch.setattr(checkpoint, "save", full_at_2)
+    with pytest.raises(runner.TrainingError, match="iteration 3") as info:
+        _recorded_loop(_RecordedStep(1, bad=[(2, 0)]), scheduler, tmp_path / "ckpt", 5)
+    assert any("writing a checkpoint failed" in note and "step 2" in note for note in info.value.__notes__)
+    assert checkpoint.all_steps(tmp_path / "ckpt") == [1]
+
+
 def test_a_failure_with_the_next_iteration_under_way_keeps_the_checkpoints_before(tmp_path, scheduler):
     """Every seed fails in iteration 3 while iteration 4 runs: TrainingError names iteration 3,
     checkpoints 1 and 2 are written, and iteration 4 was waited for."""
