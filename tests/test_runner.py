@@ -266,9 +266,7 @@ def test_a_stop_finishes_the_iteration_under_way(tmp_path):
     assert len(step.inputs) == 2 and checkpoint.all_steps(tmp_path / "ckpt") == [1, 2]
 
 
-def test_a_failed_checkpoint_write_beside_the_loop_stops_it(tmp_path, scheduler, monkeypatch):
-    """The write of checkpoint 2 fails in its thread while the loop goes on: the next write raises
-    its error, and no later checkpoint is written."""
+def _disk_full_at_checkpoint_2(monkeypatch):
     real = checkpoint.save
 
     def full_at_2(path, state, step, metadata=None):
@@ -277,6 +275,12 @@ def test_a_failed_checkpoint_write_beside_the_loop_stops_it(tmp_path, scheduler,
         return real(path, state, step, metadata)
 
     monkeypatch.setattr(checkpoint, "save", full_at_2)
+
+
+def test_a_failed_checkpoint_write_beside_the_loop_stops_it(tmp_path, scheduler, monkeypatch):
+    """The write of checkpoint 2 fails in its thread while the loop goes on: the next write raises
+    its error, and no later checkpoint is written."""
+    _disk_full_at_checkpoint_2(monkeypatch)
     with pytest.raises(checkpoint.CheckpointError, match="step 2"):
         _recorded_loop(_RecordedStep(1), scheduler, tmp_path / "ckpt", 4)
     assert checkpoint.all_steps(tmp_path / "ckpt") == [1]
@@ -285,14 +289,7 @@ def test_a_failed_checkpoint_write_beside_the_loop_stops_it(tmp_path, scheduler,
 def test_a_failed_write_during_a_failure_becomes_its_note(tmp_path, scheduler, monkeypatch):
     """Checkpoint 2's write fails in its thread while iteration 3 fails: the TrainingError is
     raised (the user's one line names the iteration) and the write's error is its note."""
-    real = checkpoint.save
-
-    def full_at_2(path, state, step, metadata=None):
-        if step == 2:
-            raise checkpoint.CheckpointError("checkpoint step 2: No space left on device")
-        return real(path, state, step, metadata)
-
-    monkeypatch.setattr(checkpoint, "save", full_at_2)
+    _disk_full_at_checkpoint_2(monkeypatch)
     with pytest.raises(runner.TrainingError, match="iteration 3") as info:
         _recorded_loop(_RecordedStep(1, bad=[(2, 0)]), scheduler, tmp_path / "ckpt", 5)
     assert any("writing a checkpoint failed" in note and "step 2" in note for note in info.value.__notes__)
