@@ -1100,6 +1100,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                 os.environ.pop("JAX_PLATFORMS", None)
             else:
                 os.environ["JAX_PLATFORMS"] = before
+    finished = False
     try:
         while True:
             if scheduler is not None and scheduler.stop.is_set():
@@ -1114,12 +1115,16 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
             if isinstance(item, _ChildResult):
                 if item.error is not None:
                     raise item.error
+                finished = True
                 return item.result
             if progress_fn is not None:
                 progress_fn(item)
     finally:
         stop_event.set()
-        child.join(timeout=60)
+        if not finished:
+            child.join(timeout=60)
+        # else the child has written everything and sent its result; its interpreter's exit
+        # (about a second) is no part of the run: multiprocessing reaps it later.
 
 
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,

@@ -12,9 +12,9 @@ Two interchangeable backends run the same MJCF behind the same functions:
   Differentiable (``jax.jacfwd`` through :func:`step` works).
 * ``"mujoco"``: C MuJoCo on the host, called once per control step through
   ``jax.pure_callback`` with ``vmap_method="broadcast_all"``, so one callback receives the
-  whole (possibly nested) batch and steps it with ``mujoco.rollout`` (serially). It stays
-  jittable and vmappable, and about 100× faster than MJX on a 2-core CPU (10 rollouts of 80
-  steps, ``benchmarks/rollout.py``). Not differentiable (no JVP rule for the callback).
+  whole (possibly nested) batch and steps it with ``mujoco.rollout`` (a large batch on several
+  host cores). It stays jittable and vmappable, and about 100× faster than MJX on a 2-core CPU
+  (10 rollouts of 80 steps, ``benchmarks/rollout.py``). Not differentiable (no JVP rule for the callback).
 
 Everything here is a pure function of arrays; :func:`rollout` works under ``jax.jit`` and under
 any number of nested ``jax.vmap``s over (policy, x0, eps). :func:`rollout_with_final` also
@@ -142,10 +142,11 @@ class Sim:
 
     # -- host stepper for the mujoco backend ----------------------------------------------
     def _host(self):
+        """The C MuJoCo stepper of this plant: a batch on up to all host cores (``_all_cores``)."""
         if "host" not in self._cache:
             with self._lock:
                 if "host" not in self._cache:
-                    self._cache["host"] = _HostStepper(self.model, self.config.substeps)
+                    self._cache["host"] = _HostStepper(self.model, self.config.substeps, _all_cores(self.model))
         return self._cache["host"]
 
 
@@ -344,21 +345,33 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
 _mjx_step_jit = jax.jit(_mjx_step, static_argnums=0)
 
 
+# A threaded step gives each thread at least this many members: a member's control step is tens of
+# microseconds of MuJoCo, a thread's hand-off a few.
+ROWS_PER_THREAD = 8
+
+
 class _HostStepper:
     """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``
-    (``nthread`` > 0: on that many threads)."""
+    (``nthread`` > 0: on up to that many threads, ``ROWS_PER_THREAD`` members or more each).
 
-    # Stepping is single-threaded inside the callback (the default): the callback already runs on
-    # an XLA:CPU thread, and a threaded ``mujoco.rollout`` would compete with XLA's own pool for
-    # the cores. Host code outside XLA (gmr_jax.stability) asks for threads.
+    Callers at the same time step with their own ``MjData`` (and thread pool), so runs trained
+    side by side step their plants at the same time. A member's result does not depend on the
+    batch it is stepped in (every member starts from its full physics state, and the scenes
+    disable MuJoCo's warm start, which that state leaves out: checked here), so any thread
+    count gives the same bits.
+    """
 
     def __init__(self, model: mujoco.MjModel, substeps: int, nthread: int = 0):
-        from mujoco import rollout as mj_rollout
-
+        if nthread and not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_WARMSTART:
+            # With the warm start on, a member's solver would start from the member stepped
+            # before it on the same thread: results would depend on the thread count.
+            raise ValueError("a threaded C MuJoCo stepper needs the scene's warm start disabled "
+                             "(<flag warmstart=\"disable\"/>); step it with nthread=0")
         self.model = model
         self.substeps = substeps
-        self.serial = mj_rollout.Rollout(nthread=nthread)
-        self.data = [mujoco.MjData(model) for _ in range(nthread)] if nthread else mujoco.MjData(model)
+        self.nthread = nthread
+        self._free = {}  # thread count: (Rollout, data) pairs not in use
+        self._lock = threading.Lock()
         self.nstate = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         d = mujoco.MjData(model)
         self.template = np.empty(self.nstate)
@@ -367,7 +380,23 @@ class _HostStepper:
         self.i_qpos = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_TIME)
         self.i_qvel = self.i_qpos + model.nq
         self.t_end = substeps * model.opt.timestep
-        self.lock = threading.Lock()
+
+    def _take(self, nthread: int):
+        """A free (``mujoco.rollout.Rollout``, data) pair of ``nthread`` threads, made if every
+        one is in use. (Not one per thread: XLA runs a host callback under a Python thread
+        state made for that call.)"""
+        with self._lock:
+            free = self._free.setdefault(nthread, [])
+            if free:
+                return free.pop()
+        from mujoco import rollout as mj_rollout
+
+        return (mj_rollout.Rollout(nthread=nthread),
+                [mujoco.MjData(self.model) for _ in range(nthread)] if nthread else mujoco.MjData(self.model))
+
+    def _give_back(self, nthread: int, pair) -> None:
+        with self._lock:
+            self._free[nthread].append(pair)
 
     def __call__(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x [..., dX], u [..., dU] (same leading shape) → x1 [..., dX] in x's dtype."""
@@ -385,9 +414,14 @@ class _HostStepper:
         state0[:, self.i_qvel:self.i_qvel + nq] = np.where(bad_in[:, None], 0.0, xb[:, nq:])
         out = np.empty((B, self.substeps, self.nstate))
         ctrl = np.ascontiguousarray(np.broadcast_to(np.where(bad_in[:, None, None], 0.0, ub), (B, self.substeps, nu)))
-        with self.lock:
-            self.serial.rollout(self.model, self.data, state0, ctrl, nstep=self.substeps, state=out,
-                                sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
+        nthread = min(self.nthread, B // ROWS_PER_THREAD)
+        nthread = nthread if nthread > 1 else 0
+        pair = self._take(nthread)
+        try:
+            pair[0].rollout(self.model, pair[1], state0, ctrl, nstep=self.substeps, state=out,
+                            sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
+        finally:
+            self._give_back(nthread, pair)
         last = out[:, -1]
         x1 = np.concatenate([last[:, self.i_qpos:self.i_qvel], last[:, self.i_qvel:self.i_qvel + nq]], axis=1)
         # C MuJoCo silently resets a state whose acceleration or position went bad (time then
@@ -434,10 +468,17 @@ def _host_rollout(s: Sim, policy: types.LinearGaussianPolicy, x0: Array, eps: Ar
     limit = np.asarray(s.torque_limit, np.float64) if s.config.clip_torques else None
     out = (jax.ShapeDtypeStruct((T, x0.shape[-1]), dtype), jax.ShapeDtypeStruct((T, dU), dtype),
            jax.ShapeDtypeStruct(x0.shape, dtype))
+    stepper = s._host()
     return jax.pure_callback(
-        lambda *a: s._host().rollout(*a, limit=limit), out, x0, policy.K.astype(dtype),
+        lambda *a: stepper.rollout(*a, limit=limit), out, x0, policy.K.astype(dtype),
         policy.k.astype(dtype), policy.chol_pol_covar.astype(dtype), eps.astype(dtype),
         vmap_method="broadcast_all")
+
+
+def _all_cores(model: mujoco.MjModel) -> int:
+    """Threads that step a batch of ``model`` on all host cores: ``os.cpu_count()``, or 0
+    (serially) where the scene keeps MuJoCo's warm start (see ``_HostStepper``)."""
+    return (os.cpu_count() or 1) if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_WARMSTART else 0
 
 
 def _host_step(s: Sim, x: Array, u: Array) -> Array:

@@ -19,7 +19,6 @@ perturbations: the robustness counts do.
 from __future__ import annotations
 
 import functools
-import os
 from typing import NamedTuple
 
 import jax
@@ -73,12 +72,7 @@ def plant_jacobians(cfg: Config, x: np.ndarray, u: np.ndarray, h: float = FD_STE
 
 def _host_step(s: sim_lib.Sim, x: np.ndarray, u: np.ndarray) -> np.ndarray:
     """One control step of C MuJoCo for a batch, on all host cores (outside any XLA callback)."""
-    return _threaded_stepper(s.model, s.config.substeps)(x, u)
-
-
-@functools.lru_cache(maxsize=8)
-def _threaded_stepper(model: mujoco.MjModel, substeps: int) -> sim_lib._HostStepper:
-    return sim_lib._HostStepper(model, substeps, nthread=os.cpu_count() or 1)
+    return s._host()(x, u)
 
 
 def spectral_radius(J) -> np.ndarray:

@@ -274,6 +274,34 @@ def test_host_rollout_equals_stepwise_rollout(s):
     assert_trees_within(steps, whole, tol)
 
 
+def test_host_stepper_threads_and_concurrent_callers_give_the_same_bits(s):
+    """The C MuJoCo stepper's result for a state does not depend on the thread count, nor on
+    other threads stepping at the same time (each has its own MjData): the scenes disable the
+    warm start, the only state a member would inherit from the one stepped before it. A
+    threaded stepper refuses a scene with the warm start on."""
+    import concurrent.futures
+
+    rng = np.random.default_rng(3)
+    x = random_states(rng, 48)
+    u = rng.normal(size=(48, 6)) * 20.0  # applied as given (the stepper does not clip)
+    serial = sim._HostStepper(s.model, s.config.substeps)
+    ref = serial(x, u)
+    assert np.all(np.isfinite(ref)) and not np.allclose(ref, x)
+    np.testing.assert_array_equal(serial(x[::-1], u[::-1])[::-1], ref)  # order does not matter
+    for n in (1, 3, 64):  # serial, 3 threads, as many as 48 // ROWS_PER_THREAD
+        np.testing.assert_array_equal(sim._HostStepper(s.model, s.config.substeps, n)(x, u), ref)
+    batches = [(x[i::4], u[i::4]) for i in range(4)]
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:  # one stepper, four callers at once
+        outs = list(pool.map(lambda xu: serial(*xu), batches * 8))
+    for i, out in enumerate(outs):
+        np.testing.assert_array_equal(out, ref[i % 4::4])
+    warm = mujoco.MjModel.from_xml_path(str(s.path))
+    warm.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
+    with pytest.raises(ValueError, match="warm start"):
+        sim._HostStepper(warm, s.config.substeps, 2)
+    sim._HostStepper(warm, s.config.substeps)  # serial: allowed
+
+
 def test_batched_equals_one_by_one(s, batched, single):
     rng = np.random.default_rng(5)
     M, N = 2, 3
