@@ -785,7 +785,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         timer = Timer()
         stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
         state, history, step, robustness = _prepare(cfg, seeds, layout, k_init, it_keys, ckpt_dir, resume, stop,
-                                                    timer, scheduler, ticket, report)
+                                                    timer, scheduler, ticket, report, stability)
     except BaseException:
         scheduler.tracing.release(ticket, scheduler.tracing.later(ticket))  # the other runs' turns go on
         raise
@@ -809,7 +809,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
 
 
 def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, stop, timer, scheduler, ticket,
-             report):
+             report, stability: bool = False):
     """The run's starting point and programs: (state on the devices, history, compiled step
     program or None, future of the compiled robustness program or None).
 
@@ -818,7 +818,8 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     from the state's shapes; the step program then compiles in a compile slot. The robustness
     program is traced in the background in the run's later turn (after every run's step
     program: ``TracingTurns.later``) and compiled while the run trains (in a compile slot too,
-    after the programs already waiting for one)."""
+    after the programs already waiting for one), and then, with ``stability``, the stability
+    measurement's policy program (``stability.warm_up``)."""
     init_program = _program("init", layout.mesh)
     init = functools.partial(init_program, program_config(cfg))
 
@@ -851,7 +852,11 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
                 lowered = _lowered("robustness", cfg, (shapes.policy.params,), timer, scheduler, layout.mesh)
             # In a slot: beside training, but after the other runs' iteration programs, which then
             # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
-            return _compiled("robustness", cfg, num, lowered, timer, scheduler, slot=True, mesh=layout.mesh)
+            compiled = _compiled("robustness", cfg, num, lowered, timer, scheduler, slot=True, mesh=layout.mesh)
+            if stability:
+                with timer("stability_warm_up_s"):
+                    stability_lib.warm_up(cfg, shapes.policy.params)
+            return compiled
         robustness = scheduler.pool.submit(robustness_program)
     else:
         scheduler.tracing.release(later)

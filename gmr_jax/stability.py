@@ -111,7 +111,23 @@ def _rollout_states(cfg: Config, params, x0):
     return jax.vmap(lambda p: evaluate.execute_policy(cfg, p, x0).X)(params)
 
 
-def measure(cfg: Config, params, X=None, every: int = 5) -> Stability:
+EVERY = 5  # measure's default: every 5th control step of a rollout
+
+
+def warm_up(cfg: Config, params, num_rollouts: int = evaluate.ROBUSTNESS_STATES, every: int = EVERY) -> None:
+    """Trace and compile (or load from JAX's compilation cache) the policy's part of
+    :func:`measure` for policies shaped like ``params`` (PolicyParams or their shapes, leading
+    seed axis [S]) along ``num_rollouts`` rollouts of the task's horizon, by running it once on
+    zeros: a runner calls this while training, so that the measurement after it does not wait
+    for the tracing. Changes nothing else."""
+    # NumPy parameters and a JAX array of states, as measure passes them: the same call signature
+    one = jax.tree_util.tree_map(lambda a: np.zeros(a.shape[1:], a.dtype), params)
+    dtype = jax.tree_util.tree_leaves(one)[0].dtype
+    n = 1 + num_rollouts * len(range(0, cfg.task.T, every))
+    jax.block_until_ready(_policy_terms(cfg, one, jnp.asarray(np.zeros((n, sim_lib.make_sim(cfg.sim).dX), dtype))))
+
+
+def measure(cfg: Config, params, X=None, every: int = EVERY) -> Stability:
     """ρ(J) of every seed's policy at the target and along its noiseless rollouts, every
     ``every``-th control step.
 

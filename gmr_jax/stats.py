@@ -12,6 +12,9 @@ always give the same interval. Percentile rather than scipy's default BCa: BCa's
 is undefined for the ties that success counts are full of (e.g. every seed 50/50), and
 percentile is what rliable uses. With one seed there is no interval (NaN); when every seed has
 the same value the interval is that value.
+
+``scipy.stats`` is imported where it is first needed, not with this module: its import takes
+about a second, and a one-seed study (the default run) needs none of it.
 """
 
 from __future__ import annotations
@@ -19,7 +22,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import scipy.stats
 
 CONFIDENCE = 0.95
 RESAMPLES = 10_000
@@ -49,8 +51,13 @@ class SeedStats(NamedTuple):
 
 def iqm(values) -> float:
     """Interquartile mean: the mean of the values between the 25th and 75th percentile
-    (``scipy.stats.trim_mean`` with 25 % cut from each end)."""
-    return float(scipy.stats.trim_mean(np.asarray(values, np.float64), 0.25))
+    (``scipy.stats.trim_mean`` with 25 % cut from each end; that of one value is the value)."""
+    x = np.asarray(values, np.float64).reshape(-1)
+    if x.size == 1:
+        return float(x[0])
+    import scipy.stats  # noqa: PLC0415 (slow to import; see the module docstring)
+
+    return float(scipy.stats.trim_mean(x, 0.25))
 
 
 def over_seeds(values, confidence: float = CONFIDENCE, resamples: int = RESAMPLES, seed: int = 0) -> SeedStats:
@@ -74,6 +81,8 @@ def over_seeds(values, confidence: float = CONFIDENCE, resamples: int = RESAMPLE
     elif np.all(x == x[0]):
         low = high = mean
     else:
+        import scipy.stats  # noqa: PLC0415 (slow to import; see the module docstring)
+
         ci = scipy.stats.bootstrap((x,), np.mean, confidence_level=confidence, n_resamples=resamples,
                                    method="percentile", rng=np.random.default_rng(seed)).confidence_interval
         low, high = float(ci.low), float(ci.high)

@@ -62,3 +62,17 @@ def test_measure_on_given_and_own_rollouts(policy_run):
     X = evaluate.robustness(cfg, params).X
     given = stability.measure(cfg, jax.tree_util.tree_map(lambda a: a[None], params), X=X[None], every=40)
     np.testing.assert_array_equal(given.radius[0], out.radius[0])
+
+
+def test_warm_up_prepares_the_program_that_measure_runs(policy_run):
+    """After ``warm_up`` for policies of these shapes, ``measure`` along the robustness test's
+    rollouts adds no entry to the policy program's cache (nothing traced or compiled anew): the
+    runner's warm-up while training covers the measurement."""
+    cfg, params = policy_run
+    batched = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), params)
+    stability.warm_up(cfg, jax.eval_shape(lambda: batched))  # shapes are enough
+    traced = stability._policy_terms._cache_size()
+    dtype = jax.tree_util.tree_leaves(params)[0].dtype
+    X = np.zeros((2, evaluate.ROBUSTNESS_STATES, cfg.task.T, 12), dtype)
+    stability.measure(cfg, jax.device_get(batched), X=X)  # as the runner calls it
+    assert stability._policy_terms._cache_size() == traced

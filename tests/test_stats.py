@@ -1,6 +1,10 @@
 """gmr_jax.stats against closed forms: the IQM by hand, the bootstrap interval of a large sample
 against the normal approximation, the degenerate cases."""
 
+import pathlib
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -10,6 +14,18 @@ from gmr_jax import stats
 def test_iqm_is_the_mean_of_the_middle_half():
     assert stats.iqm(np.arange(8)) == pytest.approx(3.5)  # mean of 2, 3, 4, 5
     assert stats.iqm([0, 0, 50, 50, 50, 50, 50, 50]) == pytest.approx(50.0)  # two outlying seeds cut
+    assert stats.iqm([0.1]) == 0.1 and stats.over_seeds([7.0]).iqm == 7.0  # one value: itself
+
+
+def test_a_one_seed_study_does_not_import_scipy_stats():
+    """The CLI and its report import ``scipy.stats`` (about a second) only when statistics over
+    several seeds are computed: a one-seed summary and the command's start do without it."""
+    code = ("import sys, numpy as np; from experiments import cli, reach, report; from gmr_jax import stats; "
+            "assert stats.over_seeds([3.0]).format() == '3.0 (1 seed)'; "
+            "print('scipy.stats' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=pathlib.Path(__file__).parents[1])
+    assert out.stdout.strip() == "False", out.stdout + out.stderr
 
 
 def test_bootstrap_interval_of_a_large_sample_matches_the_normal_approximation():
