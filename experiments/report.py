@@ -202,7 +202,8 @@ TIMING_PHASES = (("init_s", "init"), ("trace_s", "trace"), ("lower_s", "lower"),
                  ("iterations_s", "iterations"),
                  ("checkpoint_s", "checkpoints"), ("robustness_trace_s", "robustness trace"),
                  ("robustness_lower_s", "lower"), ("robustness_compile_s", "compile (beside training, in a slot)"),
-                 ("robustness_wait_s", "waited for"), ("robustness_run_s", "run"))
+                 ("robustness_wait_s", "waited for"), ("robustness_run_s", "run"),
+                 ("stability_warm_up_s", "stability prepared (beside training)"), ("stability_s", "stability"))
 
 
 def format_timing(run) -> str:

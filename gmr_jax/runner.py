@@ -819,7 +819,7 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     program is traced in the background in the run's later turn (after every run's step
     program: ``TracingTurns.later``) and compiled while the run trains (in a compile slot too,
     after the programs already waiting for one), and then, with ``stability``, the stability
-    measurement's policy program (``stability.warm_up``)."""
+    measurement's policy program is prepared in the background (``stability.warm_up``)."""
     init_program = _program("init", layout.mesh)
     init = functools.partial(init_program, program_config(cfg))
 
@@ -854,9 +854,15 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
             # compile with fewer competitors (benchmarks/RESULTS.md, twelfth session).
             compiled = _compiled("robustness", cfg, num, lowered, timer, scheduler, slot=True, mesh=layout.mesh)
             if stability:
+                scheduler.pool.submit(warm_up_stability)
+            return compiled
+
+        def warm_up_stability():
+            try:
                 with timer("stability_warm_up_s"):
                     stability_lib.warm_up(cfg, shapes.policy.params)
-            return compiled
+            except Exception:  # noqa: BLE001 (only a head start: the measurement raises it again)
+                pass
         robustness = scheduler.pool.submit(robustness_program)
     else:
         scheduler.tracing.release(later)

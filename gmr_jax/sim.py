@@ -142,11 +142,11 @@ class Sim:
 
     # -- host stepper for the mujoco backend ----------------------------------------------
     def _host(self):
-        """The C MuJoCo stepper of this plant: a batch on up to all host cores (``_all_cores``)."""
+        """The C MuJoCo stepper of this plant: a large batch on up to all host cores (``_all_cores``)."""
         if "host" not in self._cache:
             with self._lock:
                 if "host" not in self._cache:
-                    self._cache["host"] = _HostStepper(self.model, self.config.substeps, _all_cores(self.model))
+                    self._cache["host"] = _HostStepper(self.model, self.config.substeps, _all_cores())
         return self._cache["host"]
 
 
@@ -345,28 +345,24 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
 _mjx_step_jit = jax.jit(_mjx_step, static_argnums=0)
 
 
-# A threaded step gives each thread at least this many members: a member's control step is tens of
-# microseconds of MuJoCo, a thread's hand-off a few.
+# A threaded step gives its threads this many members each or more, on average: a member's control
+# step is tens of microseconds of MuJoCo, a thread's hand-off a few.
 ROWS_PER_THREAD = 8
 
 
 class _HostStepper:
     """Steps a batch of C MuJoCo states for ``substeps`` physics steps with ``mujoco.rollout``
-    (``nthread`` > 0: on up to that many threads, ``ROWS_PER_THREAD`` members or more each).
+    (``nthread`` > 0: on up to that many threads, a power of two, with about
+    ``ROWS_PER_THREAD`` members or more each).
 
     Callers at the same time step with their own ``MjData`` (and thread pool), so runs trained
     side by side step their plants at the same time. A member's result does not depend on the
-    batch it is stepped in (every member starts from its full physics state, and the scenes
-    disable MuJoCo's warm start, which that state leaves out: checked here), so any thread
-    count gives the same bits.
+    batch or thread it is stepped in: every member starts from its full physics state and a zero
+    warm start (``initial_warmstart``), and MuJoCo computes everything else (contacts, the
+    solver's state) anew in every step, so any thread count gives the same bits.
     """
 
     def __init__(self, model: mujoco.MjModel, substeps: int, nthread: int = 0):
-        if nthread and not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_WARMSTART:
-            # With the warm start on, a member's solver would start from the member stepped
-            # before it on the same thread: results would depend on the thread count.
-            raise ValueError("a threaded C MuJoCo stepper needs the scene's warm start disabled "
-                             "(<flag warmstart=\"disable\"/>); step it with nthread=0")
         self.model = model
         self.substeps = substeps
         self.nthread = nthread
@@ -414,11 +410,12 @@ class _HostStepper:
         state0[:, self.i_qvel:self.i_qvel + nq] = np.where(bad_in[:, None], 0.0, xb[:, nq:])
         out = np.empty((B, self.substeps, self.nstate))
         ctrl = np.ascontiguousarray(np.broadcast_to(np.where(bad_in[:, None, None], 0.0, ub), (B, self.substeps, nu)))
-        nthread = min(self.nthread, B // ROWS_PER_THREAD)
-        nthread = nthread if nthread > 1 else 0
+        n = min(self.nthread, B // ROWS_PER_THREAD)
+        nthread = 1 << (n.bit_length() - 1) if n > 1 else 0  # a power of two: few pool sizes
         pair = self._take(nthread)
         try:
             pair[0].rollout(self.model, pair[1], state0, ctrl, nstep=self.substeps, state=out,
+                            initial_warmstart=np.zeros((B, self.model.nv)),
                             sensordata=np.empty((B, self.substeps, self.model.nsensordata)))
         finally:
             self._give_back(nthread, pair)
@@ -475,10 +472,12 @@ def _host_rollout(s: Sim, policy: types.LinearGaussianPolicy, x0: Array, eps: Ar
         vmap_method="broadcast_all")
 
 
-def _all_cores(model: mujoco.MjModel) -> int:
-    """Threads that step a batch of ``model`` on all host cores: ``os.cpu_count()``, or 0
-    (serially) where the scene keeps MuJoCo's warm start (see ``_HostStepper``)."""
-    return (os.cpu_count() or 1) if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_WARMSTART else 0
+def _all_cores() -> int:
+    """The host cores this process may run on (its CPU affinity, else ``os.cpu_count()``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def _host_step(s: Sim, x: Array, u: Array) -> Array:

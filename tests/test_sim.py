@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from gmr_jax import config, noise, sim, types
+from gmr_jax.tasks import block_in_hole as bih
 from gmr_jax.tasks import reach as reach_task
 from test_mjcf import dh_end_effector, random_angles
 from tolerances import SAFETY, affine_tol, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
@@ -274,32 +275,49 @@ def test_host_rollout_equals_stepwise_rollout(s):
     assert_trees_within(steps, whole, tol)
 
 
-def test_host_stepper_threads_and_concurrent_callers_give_the_same_bits(s):
-    """The C MuJoCo stepper's result for a state does not depend on the thread count, nor on
-    other threads stepping at the same time (each has its own MjData): the scenes disable the
-    warm start, the only state a member would inherit from the one stepped before it. A
-    threaded stepper refuses a scene with the warm start on."""
+@pytest.mark.parametrize("scene", ["reach", "block_in_hole"])
+@pytest.mark.parametrize("warm_start", [False, True])
+def test_host_stepper_threads_and_concurrent_callers_give_the_same_bits(scene, warm_start):
+    """The C MuJoCo stepper's result for a state does not depend on the batch order, the thread
+    count, nor on other callers stepping at the same time (each with its own MjData): every
+    member starts from its full physics state and a zero warm start, in both scenes (the
+    block-in-hole's contacts too), also with MuJoCo's warm start switched on."""
     import concurrent.futures
 
+    plant = sim.make_sim(config.SimConfig(scene=scene, substeps=25 if scene == "block_in_hole" else 10,
+                                          backend="mujoco"))
+    model = mujoco.MjModel.from_xml_path(str(plant.path))  # its own copy: the flag below stays here
+    model.opt.timestep = plant.model.opt.timestep
+    if warm_start:
+        model.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
     rng = np.random.default_rng(3)
-    x = random_states(rng, 48)
-    u = rng.normal(size=(48, 6)) * 20.0  # applied as given (the stepper does not clip)
-    serial = sim._HostStepper(s.model, s.config.substeps)
+    B = 64
+    x = random_states(rng, B)
+    if scene == "block_in_hole":  # half of them near the hole, where the block touches its walls
+        goal = np.asarray(bih.target_state(bih.default_config("C").task))
+        x[: B // 2, :6] = goal[:6] + rng.normal(size=(B // 2, 6)) * 0.03
+    u = rng.normal(size=(B, 6)) * 15.0  # applied as given (the stepper does not clip)
+    serial = sim._HostStepper(model, plant.config.substeps)
     ref = serial(x, u)
     assert np.all(np.isfinite(ref)) and not np.allclose(ref, x)
-    np.testing.assert_array_equal(serial(x[::-1], u[::-1])[::-1], ref)  # order does not matter
-    for n in (1, 3, 64):  # serial, 3 threads, as many as 48 // ROWS_PER_THREAD
-        np.testing.assert_array_equal(sim._HostStepper(s.model, s.config.substeps, n)(x, u), ref)
-    batches = [(x[i::4], u[i::4]) for i in range(4)]
+    if scene == "block_in_hole":
+        data = mujoco.MjData(model)
+        contacts = []
+        for xi in x:
+            data.qpos[:], data.qvel[:] = xi[:6], xi[6:]
+            mujoco.mj_forward(model, data)
+            contacts.append(data.ncon)
+        assert sum(c > 0 for c in contacts) >= 8  # the comparison covers states in contact
+    perm = rng.permutation(B)
+    np.testing.assert_array_equal(serial(x[perm], u[perm]), ref[perm])
+    for n in (2, 3, 64):  # 2 threads, 2 (a power of two), 8 (= 64 // ROWS_PER_THREAD)
+        np.testing.assert_array_equal(sim._HostStepper(model, plant.config.substeps, n)(x, u), ref)
+    threaded = sim._HostStepper(model, plant.config.substeps, 2)
+    batches = [(x[i::4], u[i::4]) for i in range(4)]  # 16 each: 2 threads each
     with concurrent.futures.ThreadPoolExecutor(4) as pool:  # one stepper, four callers at once
-        outs = list(pool.map(lambda xu: serial(*xu), batches * 8))
+        outs = list(pool.map(lambda xu: threaded(*xu), batches * 4))
     for i, out in enumerate(outs):
         np.testing.assert_array_equal(out, ref[i % 4::4])
-    warm = mujoco.MjModel.from_xml_path(str(s.path))
-    warm.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
-    with pytest.raises(ValueError, match="warm start"):
-        sim._HostStepper(warm, s.config.substeps, 2)
-    sim._HostStepper(warm, s.config.substeps)  # serial: allowed
 
 
 def test_batched_equals_one_by_one(s, batched, single):
