@@ -511,12 +511,15 @@ STATE_ENTRIES = {"iteration": "iteration", "traj": "traj", "eta": "eta", "step_m
 """The carry entry of each field of the new state (``new_state``)."""
 
 
-def new_state(carry: dict) -> TrainState:
+def new_state(carry: dict, before: TrainState | None = None) -> TrainState:
     """The state after the iteration, assembled from the carry's entries as the parts computed
     them (not copied into one part's results): a program of later parts, or of the next
     iteration, then waits only for the parts whose results it reads (the next iteration's
-    rollouts for the C-step, not for the S-step)."""
-    return TrainState(**{field: carry[entry] for field, entry in STATE_ENTRIES.items()})
+    rollouts for the C-step, not for the S-step). With ``before``, the fields whose parts have
+    not run yet keep ``before``'s values (for a program that reads only the others)."""
+    if before is None:
+        return TrainState(**{field: carry[entry] for field, entry in STATE_ENTRIES.items()})
+    return before._replace(**{field: carry[entry] for field, entry in STATE_ENTRIES.items() if entry in carry})
 
 
 def _curve_part(cfg: Config, c: dict, first: Array) -> dict:

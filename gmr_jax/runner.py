@@ -545,8 +545,7 @@ class _PartsStep:
             carry.update(self._call(index, carry, first, copies))
             if prefetch and "traj" in carry:
                 prefetch = False
-                upcoming = state._replace(**{field: carry[entry] for field, entry in mdgps.STATE_ENTRIES.items()
-                                             if entry in carry})  # the rest is not read
+                upcoming = mdgps.new_state(carry, before=state)  # the rollouts read only what is computed
                 prefetched.update(traj=carry["traj"], keys=next_keys, samples=self.pool.submit(
                     self._call, 0, {"state": upcoming, "key": next_keys}, jnp.asarray(False), {}))
         later = range(self.state_after, len(self.programs))

@@ -23,7 +23,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from gmr_jax import evaluate, policies, sim as sim_lib, tasks
@@ -64,15 +63,10 @@ def plant_jacobians(cfg: Config, x: np.ndarray, u: np.ndarray, h: float = FD_STE
     step = h * np.maximum(1.0, np.abs(z))  # [B, n]
     pert = np.eye(n)[None] * step[:, :, None]  # [B, n (direction), n]
     zz = np.concatenate([z[:, None] + pert, z[:, None] - pert], axis=1).reshape(-1, n)
-    out = _host_step(s, zz[:, :dX], zz[:, dX:]).reshape(B, 2, n, dX)
+    out = s._host()(zz[:, :dX], zz[:, dX:]).reshape(B, 2, n, dX)  # C MuJoCo, on all host cores
     F = (out[:, 0] - out[:, 1]) / (2.0 * step[:, :, None])  # [B, n, dX]: row j = ∂x'/∂z_j
     F = np.swapaxes(F, 1, 2)
     return F[:, :, :dX], F[:, :, dX:]
-
-
-def _host_step(s: sim_lib.Sim, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """One control step of C MuJoCo for a batch, on all host cores (outside any XLA callback)."""
-    return s._host()(x, u)
 
 
 def spectral_radius(J) -> np.ndarray:
