@@ -494,6 +494,8 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(task_name, argv, description)
     args.argv = argv
+    if args.platforms and args.cpu_runs_in_process:
+        runner.start_process_server()  # it imports while this process prepares the runs
     prog = f"python -m experiments.{task_name}"
     args.precision = setup_jax(args.precision, args.autotune, not args.nondeterministic,
                                args.compilation_cache)

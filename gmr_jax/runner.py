@@ -13,8 +13,9 @@ orders their Python tracing, bounds how many XLA compilations run at once, keeps
 programs for reuse, and carries the stop request of Ctrl-C / SIGTERM: every run then finishes
 the iteration in flight, writes its checkpoint and raises :class:`Interrupted`.
 
-:func:`run_in_process` trains a run on the host CPU in a spawned process of its own (``run_all``'s
-``processes``), so that its Python work does not share the GIL with the runs on a GPU.
+:func:`run_in_process` trains a run on the host CPU in a process of its own (``run_all``'s
+``processes``), forked from a server that has imported this package once, so that its Python
+work does not share the GIL with the runs on a GPU.
 
 Progress is reported through ``progress_fn(event)``, an event being a dict with ``run`` (the
 run's label) and either ``iteration``, ``iterations`` and ``metrics`` (host numpy arrays, after
@@ -32,6 +33,7 @@ import dataclasses
 import functools
 import json
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import pathlib
 import pickle
@@ -1033,11 +1035,13 @@ class _ChildResult(NamedTuple):
 
 
 def _child_run(job: dict, events, stop_event) -> None:
-    """A run in a process of its own (spawned by :func:`run_in_process`, JAX on the CPU only):
+    """A run in a process of its own (started by :func:`run_in_process`, JAX on the CPU only):
     progress events and then a :class:`_ChildResult` go to ``events``; ``stop_event`` carries the
     parent's stop request (Ctrl-C reaches the parent only: the child ignores SIGINT, so that it
     finishes its iteration in flight like the runs in the parent)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.environ.update(job["environment"])  # for what reads it later (XLA's CPU client)
+    jax.config.update("jax_platforms", job["environment"]["JAX_PLATFORMS"])  # read at JAX's import
     for name, value in job["jax_config"].items():
         jax.config.update(name, value)
     try:
@@ -1074,25 +1078,44 @@ def in_process_iteration_programs(choice: str, cfg: config.Config) -> str:
 
 # JAX settings a child run takes from its parent (the CLI sets them before the first computation).
 _CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
-# Held while a child starts: it inherits the environment with JAX_PLATFORMS=cpu.
-_SPAWN_LOCK = threading.Lock()
+
+PRELOADED = ("gmr_jax.runner",)
+"""The modules that the server which runs in processes of their own fork from imports once
+(``multiprocessing``'s forkserver): a child starts without importing JAX, MuJoCo and this
+package again (about 2 s on an H100 machine's host, benchmarks/RESULTS.md, twenty-eighth
+session)."""
+
+
+def _process_context():
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(list(PRELOADED))  # only read when the server starts
+    return ctx
+
+
+def start_process_server() -> None:
+    """Start the server that :func:`run_in_process` forks its children from (with ``PRELOADED``
+    imported), so that it imports while this process prepares its runs; ``run_in_process``
+    starts it itself otherwise. It inherits this process's environment (XLA_FLAGS: set it
+    first) and ends with this process."""
+    _process_context()
+    multiprocessing.forkserver.ensure_running()
 
 
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
                    label: str = "", stability: bool = True, devices: int = 1) -> dict:
-    """:func:`run` on the host CPU in a process of its own (``multiprocessing``'s spawn, JAX
-    restricted to the CPU, this process's precision and compilation cache): its Python work
-    (tracing, host callbacks, checkpoints) then does not share this interpreter's GIL with the
-    runs on a GPU. Progress events come back to ``progress_fn``; the scheduler's stop request
-    reaches the child (which finishes its iteration in flight); the child's exception is raised
-    here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices, with
+    """:func:`run` on the host CPU in a process of its own (forked from ``multiprocessing``'s
+    forkserver, :func:`start_process_server`; JAX restricted to the CPU, this process's
+    precision and compilation cache): its Python work (tracing, host callbacks, checkpoints)
+    then does not share this interpreter's GIL with the runs on a GPU. Progress events come back
+    to ``progress_fn``; the scheduler's stop request reaches the child (which finishes its
+    iteration in flight); the child's exception is raised here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices, with
     the iteration's programs as :func:`in_process_iteration_programs` resolves the scheduler's
     choice."""
-    ctx = multiprocessing.get_context("spawn")
+    ctx = _process_context()
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
-           "stability": stability, "devices": devices,
+           "stability": stability, "devices": devices, "environment": {"JAX_PLATFORMS": "cpu"},
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "iteration_programs": in_process_iteration_programs(
                "auto" if scheduler is None else scheduler.iteration_programs, cfg),
@@ -1100,16 +1123,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
            else str(scheduler.program_store.directory),
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
     child = ctx.Process(target=_child_run, args=(job, events, stop_event), name=f"gmr-jax {label}", daemon=True)
-    with _SPAWN_LOCK:  # the child inherits this environment
-        before = os.environ.get("JAX_PLATFORMS")
-        os.environ["JAX_PLATFORMS"] = "cpu"
-        try:
-            child.start()
-        finally:
-            if before is None:
-                os.environ.pop("JAX_PLATFORMS", None)
-            else:
-                os.environ["JAX_PLATFORMS"] = before
+    child.start()
     finished = False
     try:
         while True:

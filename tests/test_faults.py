@@ -213,10 +213,11 @@ def test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up(cfg
 
 
 def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp_path):
-    """``runner.run_all(..., processes=...)``: a run trained in a spawned process of its own (JAX
-    on the CPU only, this process's precision) gives the same history and robustness as the run
-    here, its progress events arrive here, its checkpoints are in its folder, and its exception
-    is raised here."""
+    """``runner.run_all(..., processes=...)``: a run trained in a process of its own (forked from
+    the server that has imported the package, ``runner.start_process_server``; JAX on the CPU
+    only, this process's precision) gives the same history and robustness as the run here, its
+    progress events arrive here, its checkpoints are in its folder, and its exception is raised
+    here."""
     from tolerances import assert_trees_within, scale_tol
 
     root, result = whole
