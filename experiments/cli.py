@@ -138,6 +138,12 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="train the --cpu-runs in a process of their own (default), so that their "
                         "Python work does not share the GIL with the GPU runs' host callbacks "
                         "(runner.run_in_process; benchmarks/RESULTS.md, twentieth session)")
+    p.add_argument("--gpu-runs-in-process", default="auto", metavar="auto|none|all|SCENARIO/ALGORITHM,…",
+                   help="runs on the GPU trained in a process of their own beside this one, which "
+                        "share the GPU (default: %(default)s: with one seed on one GPU, every GPU run "
+                        "but the longest, so that the runs trace, compile and drive their loops "
+                        "without sharing one GIL; benchmarks/RESULTS.md, twenty-eighth session). "
+                        "Ignored without a GPU; the choice is written to config.json")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -214,6 +220,26 @@ def resolve_adam_entries(args) -> dict:
 CPU_RUN_ALGORITHMS = ("mdgps",)
 
 
+def _chosen_runs(option: str, value: str, args, auto) -> list:
+    """The study's runs that ``option``'s ``value`` names: "none", "all", "auto" (the list
+    ``auto``) or comma-separated SCENARIO/ALGORITHM names. Raises ValueError for a name that is
+    not one of the study's runs."""
+    value = value.strip()
+    if value == "none":
+        return []
+    if value == "auto":
+        return list(auto)
+    if value == "all":
+        return list(args.configs)
+    names = {f"{s}/{a}": (s, a) for s, a in args.configs}
+    given = [n.strip() for n in value.split(",") if n.strip()]
+    unknown = [n for n in given if n not in names]
+    if unknown:
+        raise ValueError(f"{option}: {', '.join(unknown)} not among this study's runs "
+                         f"({', '.join(names)}); or use auto, none, all")
+    return [names[n] for n in given]
+
+
 def resolve_cpu_runs(args) -> dict:
     """``--cpu-runs`` → {(scenario, algorithm): "cpu"} for the runs to place on the host CPU
     (``runner.run_all``'s ``platforms``): none without a GPU (everything is on the host then),
@@ -221,23 +247,32 @@ def resolve_cpu_runs(args) -> dict:
     runs. Raises ValueError for a name that is not one of the study's runs."""
     import jax
 
-    value = args.cpu_runs.strip()
-    if value == "none" or jax.default_backend() == "cpu":
-        chosen = []
-    elif value == "auto":
-        chosen = [key for key, cfg in args.configs.items()
-                  if args.seeds == 1 and cfg.algorithm in CPU_RUN_ALGORITHMS and cfg.sim.backend == "mujoco"]
-    elif value == "all":
-        chosen = list(args.configs)
-    else:
-        names = {f"{s}/{a}": (s, a) for s, a in args.configs}
-        given = [n.strip() for n in value.split(",") if n.strip()]
-        unknown = [n for n in given if n not in names]
-        if unknown:
-            raise ValueError(f"--cpu-runs: {', '.join(unknown)} not among this study's runs "
-                             f"({', '.join(names)}); or use auto, none, all")
-        chosen = [names[n] for n in given]
-    return {key: "cpu" for key in chosen}
+    auto = [key for key, cfg in args.configs.items()
+            if args.seeds == 1 and cfg.algorithm in CPU_RUN_ALGORITHMS and cfg.sim.backend == "mujoco"]
+    chosen = _chosen_runs("--cpu-runs", args.cpu_runs, args, auto)
+    return {} if jax.default_backend() == "cpu" else {key: "cpu" for key in chosen}
+
+
+def resolve_gpu_processes(args) -> list:
+    """``--gpu-runs-in-process`` → the runs on the GPU (those not in ``args.platforms``) to train
+    in a process of their own (``runner.run_all``'s ``processes``): none without a GPU; "auto":
+    with one seed on one GPU every GPU run but the one ``runner.run_order`` starts first (the
+    longest: it starts at once here, the others while their processes start); or the named runs
+    (a named run placed on the host CPU stays there). Raises ValueError for a name that is not
+    one of the study's runs."""
+    import jax
+
+    on_gpu = [key for key in runner.run_order(args.configs) if key not in args.platforms]
+    one_gpu = args.seeds == 1 and (args.devices or len(jax.local_devices())) == 1
+    chosen = _chosen_runs("--gpu-runs-in-process", args.gpu_runs_in_process, args,
+                          on_gpu[1:] if one_gpu else [])
+    return [] if jax.default_backend() == "cpu" else [key for key in on_gpu if key in chosen]
+
+
+def process_runs(args) -> list:
+    """The runs trained in a process of their own (``runner.run_all``'s ``processes``): the
+    ``--cpu-runs`` with ``--cpu-runs-in-process``, and the ``--gpu-runs-in-process``."""
+    return (list(args.platforms) if args.cpu_runs_in_process else []) + list(args.gpu_processes)
 
 
 def parse_args(task_name: str, argv=None, description: str | None = None) -> argparse.Namespace:
@@ -268,6 +303,7 @@ def parse_args(task_name: str, argv=None, description: str | None = None) -> arg
         p.error("no runs: give at least one --scenario and one --algorithm")
     try:
         args.platforms = resolve_cpu_runs(args)
+        args.gpu_processes = resolve_gpu_processes(args)
     except ValueError as err:
         p.error(str(err))
     return args
@@ -417,6 +453,9 @@ def run_study(args, t_start: float) -> int:
     on_cpu = [f"{s}/{a}" for (s, a) in args.configs if (s, a) in args.platforms]
     if on_cpu:
         device += f"; {', '.join(on_cpu)} on the host CPU"
+    apart = [f"{s}/{a}" for (s, a) in args.gpu_processes]
+    if apart:
+        device += f"; {', '.join(apart)} in a process of {'its' if len(apart) == 1 else 'their'} own"
     print(f"gmr-jax {args.task.name} study -> {out}  (device {device}, seeds {seeds})")
     (out / "config.json").write_text(json.dumps({
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
@@ -439,6 +478,8 @@ def run_study(args, t_start: float) -> int:
                                for (s, a), c in args.configs.items()},
         "cpu_runs": on_cpu,
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
+        # runs on the GPU trained in a process of their own (--gpu-runs-in-process)
+        "gpu_runs_in_process": apart,
         "host_cpu": host_cpu(),
         "python": platform.python_version(),
         "jax": jax.__version__,
@@ -454,7 +495,7 @@ def run_study(args, t_start: float) -> int:
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
                               stability=not args.no_stability, platforms=args.platforms,
-                              processes=list(args.platforms) if args.cpu_runs_in_process else [])
+                              processes=process_runs(args))
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()
@@ -494,7 +535,7 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(task_name, argv, description)
     args.argv = argv
-    if args.platforms and args.cpu_runs_in_process:
+    if process_runs(args):
         runner.start_process_server()  # it imports while this process prepares the runs
     prog = f"python -m experiments.{task_name}"
     args.precision = setup_jax(args.precision, args.autotune, not args.nondeterministic,

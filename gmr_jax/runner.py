@@ -13,9 +13,10 @@ orders their Python tracing, bounds how many XLA compilations run at once, keeps
 programs for reuse, and carries the stop request of Ctrl-C / SIGTERM: every run then finishes
 the iteration in flight, writes its checkpoint and raises :class:`Interrupted`.
 
-:func:`run_in_process` trains a run on the host CPU in a process of its own (``run_all``'s
-``processes``), forked from a server that has imported this package once, so that its Python
-work does not share the GIL with the runs on a GPU.
+:func:`run_in_process` trains a run in a process of its own (``run_all``'s ``processes``), on
+the host CPU or on this process's devices, forked from a server that has imported this package
+once, so that its Python work (tracing, host callbacks, checkpoints) does not share the GIL
+with the other runs.
 
 Progress is reported through ``progress_fn(event)``, an event being a dict with ``run`` (the
 run's label) and either ``iteration``, ``iterations`` and ``metrics`` (host numpy arrays, after
@@ -1035,13 +1036,14 @@ class _ChildResult(NamedTuple):
 
 
 def _child_run(job: dict, events, stop_event) -> None:
-    """A run in a process of its own (started by :func:`run_in_process`, JAX on the CPU only):
-    progress events and then a :class:`_ChildResult` go to ``events``; ``stop_event`` carries the
+    """A run in a process of its own (started by :func:`run_in_process`, with its
+    :func:`child_environment`): progress events and then a :class:`_ChildResult` go to ``events``; ``stop_event`` carries the
     parent's stop request (Ctrl-C reaches the parent only: the child ignores SIGINT, so that it
     finishes its iteration in flight like the runs in the parent)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.environ.update(job["environment"])  # for what reads it later (XLA's CPU client)
-    jax.config.update("jax_platforms", job["environment"]["JAX_PLATFORMS"])  # read at JAX's import
+    os.environ.update(job["environment"])  # read when JAX starts its backends
+    if "JAX_PLATFORMS" in job["environment"]:  # read when JAX was imported (in the server)
+        jax.config.update("jax_platforms", job["environment"]["JAX_PLATFORMS"])
     for name, value in job["jax_config"].items():
         jax.config.update(name, value)
     try:
@@ -1066,14 +1068,37 @@ def _child_run(job: dict, events, stop_event) -> None:
         events.put(_ChildResult(None, err))
 
 
-def in_process_iteration_programs(choice: str, cfg: config.Config) -> str:
-    """The ``iteration_programs`` of a run in a process of its own on the host: "auto" is "parts"
-    for a policy's run, else the choice as it is. With a program store (the CLI's default) every
-    part but the two with host callbacks (rollouts, learning curve) then comes from the store
-    instead of being traced in each new process: warm, the default run's MDGPS runs start
-    training after ~2 s instead of ~5–6 s (benchmarks/RESULTS.md, twenty-fifth session)."""
+def in_process_iteration_programs(choice: str, cfg: config.Config, platform: str = "cpu") -> str:
+    """The ``iteration_programs`` of a run in a process of its own on ``platform``: on the host
+    ("cpu"), "auto" is "parts" for a policy's run, else the choice as it is (the child resolves
+    "auto" as this process would). With a program store (the CLI's default) every part but the
+    two with host callbacks (rollouts, learning curve) then comes from the store instead of being
+    traced in each new process: warm, the default run's MDGPS runs start training after ~2 s
+    instead of ~5–6 s (benchmarks/RESULTS.md, twenty-fifth session)."""
     _check_iteration_programs(choice)
-    return "parts" if choice == "auto" and policies.spec_for(cfg) is not None else choice
+    if platform == "cpu" and choice == "auto" and policies.spec_for(cfg) is not None:
+        return "parts"
+    return choice
+
+
+def run_order(configs) -> list:
+    """The keys of ``configs`` ({(scenario, algorithm): Config}) in the order :func:`run_all`
+    starts them: the longest runs first (a policy's S-step is the slowest, more conditions mean
+    more data), so that they trace first and reach the device first."""
+    return sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
+
+
+def child_environment(platform: str | None, default_platform: str) -> dict:
+    """The environment variables that a run in a process of its own on ``platform`` ("cpu", or
+    None: this process's default devices, of ``default_platform``) starts with: JAX on the CPU
+    only for the host; beside this process on a GPU, no preallocated pool (XLA's allocator takes
+    what the run uses from the memory that this process's pool left free, a quarter of the GPU
+    by default)."""
+    if platform == "cpu":
+        return {"JAX_PLATFORMS": "cpu"}
+    if default_platform != "cpu":
+        return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    return {}
 
 
 # JAX settings a child run takes from its parent (the CLI sets them before the first computation).
@@ -1103,22 +1128,31 @@ def start_process_server() -> None:
 
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
-                   label: str = "", stability: bool = True, devices: int = 1) -> dict:
-    """:func:`run` on the host CPU in a process of its own (forked from ``multiprocessing``'s
-    forkserver, :func:`start_process_server`; JAX restricted to the CPU, this process's
-    precision and compilation cache): its Python work (tracing, host callbacks, checkpoints)
-    then does not share this interpreter's GIL with the runs on a GPU. Progress events come back
-    to ``progress_fn``; the scheduler's stop request reaches the child (which finishes its
-    iteration in flight); the child's exception is raised here. The same computation as ``run(..., platform="cpu")`` on ``devices`` CPU devices, with
-    the iteration's programs as :func:`in_process_iteration_programs` resolves the scheduler's
-    choice."""
+                   label: str = "", stability: bool = True, devices: int = 1,
+                   platform: str | None = "cpu") -> dict:
+    """:func:`run` in a process of its own (forked from ``multiprocessing``'s forkserver,
+    :func:`start_process_server`; this process's precision, compilation cache and program
+    store): its Python work (tracing, host callbacks, checkpoints) then does not share this
+    interpreter's GIL with the other runs. Progress events come back to ``progress_fn``; the
+    scheduler's stop request reaches the child (which finishes its iteration in flight); the
+    child's exception is raised here.
+
+    ``platform`` "cpu": JAX restricted to the host CPU there, the same computation as
+    ``run(..., platform="cpu")`` on ``devices`` CPU devices. None: on the first ``devices`` of
+    this process's default backend, as ``run`` here (a GPU's processes share it; the child's
+    memory as :func:`child_environment` says). The iteration's programs as
+    :func:`in_process_iteration_programs` resolves the scheduler's choice."""
+    if platform not in ("cpu", None):
+        raise ValueError(f"platform: {platform!r} is neither 'cpu' nor None (this process's devices)")
+    default_platform = jax.default_backend()
     ctx = _process_context()
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
-           "stability": stability, "devices": devices, "environment": {"JAX_PLATFORMS": "cpu"},
+           "stability": stability, "devices": devices,
+           "environment": child_environment(platform, default_platform),
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "iteration_programs": in_process_iteration_programs(
-               "auto" if scheduler is None else scheduler.iteration_programs, cfg),
+               "auto" if scheduler is None else scheduler.iteration_programs, cfg, platform or default_platform),
            "program_store": None if scheduler is None or scheduler.program_store is None
            else str(scheduler.program_store.directory),
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
@@ -1169,8 +1203,9 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       stability: see :func:`run`.
       platforms: {(scenario, algorithm): platform} for runs placed elsewhere than on the
         scheduler's devices (:func:`run`'s ``platform``, e.g. "cpu"); the others stay there.
-      processes: the (scenario, algorithm) of runs trained on the host CPU in a process of their
-        own (:func:`run_in_process`; their ``platforms`` entry, if any, must be "cpu").
+      processes: the (scenario, algorithm) of runs trained in a process of their own
+        (:func:`run_in_process`): on the host CPU where their ``platforms`` entry is "cpu", on
+        the scheduler's devices where they have none.
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:
@@ -1181,15 +1216,14 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     processes = set(processes)
     bad = sorted(f"{s}/{a}" for s, a in processes if (s, a) not in configs or (platforms or {}).get((s, a), "cpu") != "cpu")
     if bad:
-        raise ValueError(f"processes: {', '.join(bad)} not among the runs, or placed elsewhere than on the CPU")
+        raise ValueError(f"processes: {', '.join(bad)} not among the runs, or placed on a platform other than "
+                         "the CPU or the scheduler's devices")
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
                            progress_fn=progress_fn, stability=stability, platforms=platforms,
                            processes=processes)
-    # The longest runs (a policy's S-step is the slowest, more conditions mean more data) trace
-    # first and reach the device first.
-    order = sorted(configs, key=lambda k: (configs[k].algorithm != "gmr", -configs[k].task.num_conditions))
+    order = run_order(configs)
     scheduler.tracing.reset(len(configs) if not jobs or jobs >= len(configs) else 0)
     with (switch_interval(scheduler.switch_interval),
           concurrent.futures.ThreadPoolExecutor(max_workers=jobs or len(configs)) as pool):
@@ -1198,10 +1232,11 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
             label = f"{key[0]}/{key[1]}"
             if key in processes:  # traces in its own process: its turns here pass
                 scheduler.tracing.release(i, scheduler.tracing.later(i))
+                where = (platforms or {}).get(key)
                 futures[key] = pool.submit(run_in_process, configs[key], seeds, run_folder(out, *key),
                                            resume=resume, progress_fn=progress_fn, scheduler=scheduler,
                                            label=label, stability=stability,
-                                           devices=scheduler.mesh_for((platforms or {}).get(key, "cpu")).size)
+                                           devices=scheduler.mesh_for(where).size, platform=where)
             else:
                 futures[key] = pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                            progress_fn=progress_fn, scheduler=scheduler, ticket=i, label=label,

@@ -226,15 +226,20 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     # which differ by round-off (test_runner.py's parts test, whose tolerance this is)
     assert runner.in_process_iteration_programs("auto", cfg) == "parts"
     runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=scheduler,
-                          progress_fn=events.append, processes=[("A", "mdgps")])
+                          progress_fn=events.append, processes=[("A", "mdgps")],
+                          platforms={("A", "mdgps"): "cpu"})
     run = runs[("A", "mdgps")]
     for got, want in ((run["history"], result["history"]), (run["robustness"], result["robustness"])):
         assert_trees_within(got, want, scale_tol(want))
     assert run["history"].keys() == result["history"].keys()
     assert [e["iteration"] for e in events if "iteration" in e] == [1, 2, 3]
     assert checkpoint.all_steps(runner.run_folder(tmp_path, "A", "mdgps") / "checkpoints") == [1, 2, 3]
-    with pytest.raises(runner.FolderTaken, match="already hold"):  # the child's error, raised here
-        runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler)
+    for platform in ("cpu", None):  # None: on this process's devices (the CPU here too)
+        with pytest.raises(runner.FolderTaken, match="already hold"):  # the child's error, raised here
+            runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler,
+                                  platform=platform)
+    with pytest.raises(ValueError, match="platform: 'gpu' is neither"):
+        runner.run_in_process(cfg, SEEDS, tmp_path / "x", scheduler=scheduler, platform="gpu")
     with pytest.raises(ValueError, match="processes: B/mdgps not among the runs"):
         runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path / "other", scheduler=scheduler,
                        processes=[("B", "mdgps")])

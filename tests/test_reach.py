@@ -84,6 +84,50 @@ def test_cpu_runs_on_a_gpu(monkeypatch, capsys):
                             "AB/mdgps); or use auto, none, all")
 
 
+def test_gpu_runs_in_process_on_a_gpu(monkeypatch, capsys):
+    """--gpu-runs-in-process: on one GPU with one seed, "auto" trains every GPU run but the one
+    started first (the longest, ``runner.run_order``) in a process of its own; more seeds, more
+    GPUs or no GPU train them here; "none", "all" and a list choose among the GPU runs (a run
+    on the host CPU stays there); a name that is not a run of the study is refused in one line."""
+    import jax
+
+    def apart(argv, devices=1):
+        monkeypatch.setattr(jax, "local_devices", lambda *a, **k: [object()] * devices)
+        return [f"{s}/{a}" for s, a in cli.parse_args("reach", ["--backend", "mujoco"] + argv).gpu_processes]
+
+    assert apart([]) == []  # the test machine's CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert apart([]) == ["A/gmr"]  # AB/gmr starts first; the MLP runs are on the host CPU
+    assert apart(["--cpu-runs", "none"]) == ["A/gmr", "AB/mdgps", "A/mdgps"]
+    assert apart(["--seeds", "2"]) == [] and apart([], devices=2) == []
+    assert apart(["--devices", "1"], devices=2) == ["A/gmr"]
+    assert apart(["--gpu-runs-in-process", "none"]) == []
+    assert apart(["--gpu-runs-in-process", "all"]) == ["AB/gmr", "A/gmr"]
+    assert apart(["--gpu-runs-in-process", "AB/gmr,A/mdgps"]) == ["AB/gmr"]  # A/mdgps is on the CPU
+    with pytest.raises(SystemExit) as exit_info:
+        cli.parse_args("reach", ["--backend", "mujoco", "--gpu-runs-in-process", "B/gmr"])
+    assert exit_info.value.code == cli.EXIT_USAGE
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
+        "--gpu-runs-in-process: B/gmr not among this study's runs (A/gmr, A/mdgps, AB/gmr, AB/mdgps); "
+        "or use auto, none, all")
+
+
+def test_a_child_run_starts_with_its_platform_environment():
+    """``runner.child_environment``: a run on the host in a process of its own sees the CPU only;
+    one on this process's GPU takes no preallocated pool (the parent's holds most of the GPU);
+    one on this process's CPU devices changes nothing; a policy's run on the host compiles its
+    iteration in parts, on a GPU as the child resolves "auto" (as this process would)."""
+    from test_mdgps import small
+
+    assert runner.child_environment("cpu", "gpu") == {"JAX_PLATFORMS": "cpu"}
+    assert runner.child_environment("cpu", "cpu") == {"JAX_PLATFORMS": "cpu"}
+    assert runner.child_environment(None, "gpu") == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    assert runner.child_environment(None, "cpu") == {}
+    assert runner.in_process_iteration_programs("auto", small("gmr"), "gpu") == "auto"
+    assert runner.in_process_iteration_programs("auto", small("gmr"), "cpu") == "parts"
+    assert runner.in_process_iteration_programs("whole", small("gmr"), "cpu") == "whole"
+
+
 def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
     """Without --resume, an --out that holds a run's checkpoints is refused before anything is
     written: the earlier run's config.json and checkpoints stay as they were."""
