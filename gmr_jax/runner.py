@@ -1112,6 +1112,10 @@ session)."""
 
 
 def _process_context():
+    """The forkserver's context, or spawn's where the platform has no forkserver (Windows): the
+    child applies its :func:`child_environment` itself, so either way it computes the same."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(list(PRELOADED))  # only read when the server starts
     return ctx
@@ -1120,10 +1124,10 @@ def _process_context():
 def start_process_server() -> None:
     """Start the server that :func:`run_in_process` forks its children from (with ``PRELOADED``
     imported), so that it imports while this process prepares its runs; ``run_in_process``
-    starts it itself otherwise. It inherits this process's environment (XLA_FLAGS: set it
-    first) and ends with this process."""
-    _process_context()
-    multiprocessing.forkserver.ensure_running()
+    starts it itself otherwise (nothing to start without a forkserver). It inherits this
+    process's environment (XLA_FLAGS: set it first) and ends with this process."""
+    if _process_context().get_start_method() == "forkserver":
+        multiprocessing.forkserver.ensure_running()
 
 
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,

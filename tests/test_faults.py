@@ -212,12 +212,12 @@ def test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up(cfg
     assert isinstance(outcome.get("error"), ValueError) and "platform 'tpu'" in str(outcome["error"])
 
 
-def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp_path):
+def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp_path, monkeypatch):
     """``runner.run_all(..., processes=...)``: a run trained in a process of its own (forked from
     the server that has imported the package, ``runner.start_process_server``; JAX on the CPU
     only, this process's precision) gives the same history and robustness as the run here, its
     progress events arrive here, its checkpoints are in its folder, and its exception is raised
-    here."""
+    here, also from a spawned child where the platform has no forkserver."""
     from tolerances import assert_trees_within, scale_tol
 
     root, result = whole
@@ -238,6 +238,13 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
         with pytest.raises(runner.FolderTaken, match="already hold"):  # the child's error, raised here
             runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler,
                                   platform=platform)
+    import multiprocessing
+
+    monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["fork", "spawn"])  # no forkserver
+    assert runner._process_context().get_start_method() == "spawn"
+    with pytest.raises(runner.FolderTaken, match="already hold"):  # a spawned child, its own imports
+        runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler)
+    monkeypatch.undo()
     with pytest.raises(ValueError, match="platform: 'gpu' is neither"):
         runner.run_in_process(cfg, SEEDS, tmp_path / "x", scheduler=scheduler, platform="gpu")
     with pytest.raises(ValueError, match="processes: B/mdgps not among the runs"):
