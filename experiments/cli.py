@@ -133,17 +133,20 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "on a GPU with one seed, the MLP policy's runs (mdgps) with C MuJoCo, "
                         "whose S-steps are faster on the host than on an H100 and leave the GPU to "
                         "the GMR runs; benchmarks/RESULTS.md). Ignored without a GPU; the choice "
-                        "is written to config.json")
+                        "is written to config.json; a name that is not a run is refused on any machine")
     p.add_argument("--cpu-runs-in-process", action=argparse.BooleanOptionalAction, default=True,
                    help="train the --cpu-runs in a process of their own (default), so that their "
                         "Python work does not share the GIL with the GPU runs' host callbacks "
                         "(runner.run_in_process; benchmarks/RESULTS.md, twentieth session)")
     p.add_argument("--gpu-runs-in-process", default="auto", metavar="auto|none|all|SCENARIO/ALGORITHM,…",
                    help="runs on the GPU trained in a process of their own beside this one, which "
-                        "share the GPU (default: %(default)s: with one seed on one GPU, every GPU run "
-                        "but the longest, so that the runs trace, compile and drive their loops "
-                        "without sharing one GIL; benchmarks/RESULTS.md, twenty-eighth session). "
-                        "Ignored without a GPU; the choice is written to config.json")
+                        "share the GPU (default: %(default)s: with one seed on one GPU and runs side "
+                        "by side, every GPU run but the longest, so that the runs trace, compile and "
+                        "drive their loops without sharing one GIL; benchmarks/RESULTS.md, "
+                        "twenty-eighth session). Such a run takes GPU memory from what this "
+                        "process's pool leaves free (a quarter of the GPU; more with "
+                        "XLA_PYTHON_CLIENT_MEM_FRACTION). Runs on the host CPU (--cpu-runs) stay "
+                        "there; ignored without a GPU; the choice is written to config.json")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -256,8 +259,9 @@ def resolve_cpu_runs(args) -> dict:
 def resolve_gpu_processes(args) -> list:
     """``--gpu-runs-in-process`` → the runs on the GPU (those not in ``args.platforms``) to train
     in a process of their own (``runner.run_all``'s ``processes``): none without a GPU; "auto":
-    with one seed on one GPU every GPU run but the one ``runner.run_order`` starts first (the
-    longest: it starts at once here, the others while their processes start); or the named runs
+    with one seed on one GPU and runs side by side (``--jobs`` not 1) every GPU run but the one
+    ``runner.run_order`` starts first (the longest: it starts at once here, the others while
+    their processes start); or the named runs
     (a named run placed on the host CPU stays there). Raises ValueError for a name that is not
     one of the study's runs."""
     import jax
@@ -265,8 +269,8 @@ def resolve_gpu_processes(args) -> list:
     on_gpu = [key for key in runner.run_order(args.configs) if key not in args.platforms]
     one_gpu = args.seeds == 1 and (args.devices or len(jax.local_devices())) == 1
     chosen = _chosen_runs("--gpu-runs-in-process", args.gpu_runs_in_process, args,
-                          on_gpu[1:] if one_gpu else [])
-    return [] if jax.default_backend() == "cpu" else [key for key in on_gpu if key in chosen]
+                          on_gpu[1:] if one_gpu and args.jobs != 1 else [])
+    return [key for key in on_gpu if key in chosen] if jax.default_backend() == "gpu" else []
 
 
 def process_runs(args) -> list:

@@ -1037,9 +1037,11 @@ class _ChildResult(NamedTuple):
 
 def _child_run(job: dict, events, stop_event) -> None:
     """A run in a process of its own (started by :func:`run_in_process`, with its
-    :func:`child_environment`): progress events and then a :class:`_ChildResult` go to ``events``; ``stop_event`` carries the
-    parent's stop request (Ctrl-C reaches the parent only: the child ignores SIGINT, so that it
-    finishes its iteration in flight like the runs in the parent)."""
+    :func:`child_environment`): progress events and then a :class:`_ChildResult` go to
+    ``events``; ``stop_event`` carries the parent's stop request. Ctrl-C reaches the parent
+    only (the child ignores SIGINT); SIGTERM (e.g. sent to the whole process group by ``timeout``
+    or a batch system) and the parent's end are stop requests too: the child finishes its
+    iteration in flight like the runs in the parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ.update(job["environment"])  # read when JAX starts its backends
     if "JAX_PLATFORMS" in job["environment"]:  # read when JAX was imported (in the server)
@@ -1050,12 +1052,15 @@ def _child_run(job: dict, events, stop_event) -> None:
         store = None if job["program_store"] is None else program_store_lib.ProgramStore(job["program_store"])
         with Scheduler(job["compile_jobs"], job["devices"], switch_interval=None,
                        iteration_programs=job["iteration_programs"], program_store=store) as scheduler:
+            parent = multiprocessing.parent_process()
+
             def forward_stop():
                 # polled: a process that exits while waiting on a multiprocessing Event leaves the
                 # parent's ``set`` waiting for it forever
-                while not stop_event.is_set():
+                while not stop_event.is_set() and (parent is None or parent.is_alive()):
                     time.sleep(0.2)
                 scheduler.request_stop()
+            signal.signal(signal.SIGTERM, lambda signum, frame: scheduler.request_stop())
             threading.Thread(target=forward_stop, daemon=True).start()
             result = run(job["cfg"], job["seeds"], job["run_dir"], resume=job["resume"], progress_fn=events.put,
                          scheduler=scheduler, label=job["label"], stability=job["stability"])
@@ -1093,10 +1098,10 @@ def child_environment(platform: str | None, default_platform: str) -> dict:
     None: this process's default devices, of ``default_platform``) starts with: JAX on the CPU
     only for the host; beside this process on a GPU, no preallocated pool (XLA's allocator takes
     what the run uses from the memory that this process's pool left free, a quarter of the GPU
-    by default)."""
+    by default: ``XLA_PYTHON_CLIENT_MEM_FRACTION`` set before the command starts leaves more)."""
     if platform == "cpu":
         return {"JAX_PLATFORMS": "cpu"}
-    if default_platform != "cpu":
+    if default_platform == "gpu":
         return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     return {}
 
@@ -1126,8 +1131,18 @@ def start_process_server() -> None:
     imported), so that it imports while this process prepares its runs; ``run_in_process``
     starts it itself otherwise (nothing to start without a forkserver). It inherits this
     process's environment (XLA_FLAGS: set it first) and ends with this process."""
-    if _process_context().get_start_method() == "forkserver":
+    if _process_context().get_start_method() != "forkserver":
+        return
+    if threading.current_thread() is not threading.main_thread():
         multiprocessing.forkserver.ensure_running()
+        return
+    # Started with SIGINT ignored (kept across its exec): a Ctrl-C while it imports reaches this
+    # process only, and its children start with SIGINT ignored as they should.
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
@@ -1220,8 +1235,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     processes = set(processes)
     bad = sorted(f"{s}/{a}" for s, a in processes if (s, a) not in configs or (platforms or {}).get((s, a), "cpu") != "cpu")
     if bad:
-        raise ValueError(f"processes: {', '.join(bad)} not among the runs, or placed on a platform other than "
-                         "the CPU or the scheduler's devices")
+        raise ValueError(f"processes: {', '.join(bad)} not among the runs, or with a platforms entry other than "
+                         "'cpu' (a process run on the scheduler's devices has none)")
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,

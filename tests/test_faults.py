@@ -217,7 +217,8 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     the server that has imported the package, ``runner.start_process_server``; JAX on the CPU
     only, this process's precision) gives the same history and robustness as the run here, its
     progress events arrive here, its checkpoints are in its folder, and its exception is raised
-    here, also from a spawned child where the platform has no forkserver."""
+    here, also from a spawned child where the platform has no forkserver; SIGTERM stops it after
+    its iteration in flight."""
     from tolerances import assert_trees_within, scale_tol
 
     root, result = whole
@@ -245,6 +246,15 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     with pytest.raises(runner.FolderTaken, match="already hold"):  # a spawned child, its own imports
         runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler)
     monkeypatch.undo()
+
+    def terminate_child(event):  # SIGTERM to the child alone: a stop request there
+        if event.get("iteration") == 1:
+            child = next(p for p in multiprocessing.active_children() if p.name == "gmr-jax sigterm")
+            os.kill(child.pid, signal.SIGTERM)
+    with pytest.raises(runner.Interrupted):
+        runner.run_in_process(dataclasses.replace(cfg, iterations=20), SEEDS, tmp_path / "sigterm",
+                              scheduler=scheduler, label="sigterm", progress_fn=terminate_child)
+    assert 1 <= checkpoint.latest(tmp_path / "sigterm" / "checkpoints") < 20  # the iteration in flight's
     with pytest.raises(ValueError, match="platform: 'gpu' is neither"):
         runner.run_in_process(cfg, SEEDS, tmp_path / "x", scheduler=scheduler, platform="gpu")
     with pytest.raises(ValueError, match="processes: B/mdgps not among the runs"):

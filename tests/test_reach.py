@@ -87,8 +87,9 @@ def test_cpu_runs_on_a_gpu(monkeypatch, capsys):
 def test_gpu_runs_in_process_on_a_gpu(monkeypatch, capsys):
     """--gpu-runs-in-process: on one GPU with one seed, "auto" trains every GPU run but the one
     started first (the longest, ``runner.run_order``) in a process of its own; more seeds, more
-    GPUs or no GPU train them here; "none", "all" and a list choose among the GPU runs (a run
-    on the host CPU stays there); a name that is not a run of the study is refused in one line."""
+    GPUs, one run at a time (--jobs 1) or no GPU (a CPU, a TPU) train them here; "none", "all"
+    and a list choose among the GPU runs (a run on the host CPU stays there); a name that is not
+    a run of the study is refused in one line."""
     import jax
 
     def apart(argv, devices=1):
@@ -101,9 +102,12 @@ def test_gpu_runs_in_process_on_a_gpu(monkeypatch, capsys):
     assert apart(["--cpu-runs", "none"]) == ["A/gmr", "AB/mdgps", "A/mdgps"]
     assert apart(["--seeds", "2"]) == [] and apart([], devices=2) == []
     assert apart(["--devices", "1"], devices=2) == ["A/gmr"]
+    assert apart(["--jobs", "1"]) == [] and apart(["--jobs", "2"]) == ["A/gmr"]  # one run at a time: no gain
     assert apart(["--gpu-runs-in-process", "none"]) == []
     assert apart(["--gpu-runs-in-process", "all"]) == ["AB/gmr", "A/gmr"]
     assert apart(["--gpu-runs-in-process", "AB/gmr,A/mdgps"]) == ["AB/gmr"]  # A/mdgps is on the CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "tpu")
+    assert apart(["--gpu-runs-in-process", "all"]) == []  # GPUs only: a TPU is one process's
     with pytest.raises(SystemExit) as exit_info:
         cli.parse_args("reach", ["--backend", "mujoco", "--gpu-runs-in-process", "B/gmr"])
     assert exit_info.value.code == cli.EXIT_USAGE
@@ -122,7 +126,7 @@ def test_a_child_run_starts_with_its_platform_environment():
     assert runner.child_environment("cpu", "gpu") == {"JAX_PLATFORMS": "cpu"}
     assert runner.child_environment("cpu", "cpu") == {"JAX_PLATFORMS": "cpu"}
     assert runner.child_environment(None, "gpu") == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
-    assert runner.child_environment(None, "cpu") == {}
+    assert runner.child_environment(None, "cpu") == {} and runner.child_environment(None, "tpu") == {}
     assert runner.in_process_iteration_programs("auto", small("gmr"), "gpu") == "auto"
     assert runner.in_process_iteration_programs("auto", small("gmr"), "cpu") == "parts"
     assert runner.in_process_iteration_programs("whole", small("gmr"), "cpu") == "whole"
