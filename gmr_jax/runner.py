@@ -1136,13 +1136,17 @@ def start_process_server() -> None:
     if threading.current_thread() is not threading.main_thread():
         multiprocessing.forkserver.ensure_running()
         return
-    # Started with SIGINT ignored (kept across its exec): a Ctrl-C while it imports reaches this
-    # process only, and its children start with SIGINT ignored as they should.
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Started with SIGINT and SIGTERM ignored (kept across its exec): a Ctrl-C while it imports
+    # reaches this process only, and a SIGTERM to the whole process group (``timeout``, a batch
+    # system) leaves it alive: without it this process could no longer learn how its children
+    # are (their exit code reads 255) and would take them for dead while they finish their
+    # iteration. It ends with this process all the same.
+    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         multiprocessing.forkserver.ensure_running()
     finally:
-        signal.signal(signal.SIGINT, before)
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
@@ -1237,6 +1241,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     if bad:
         raise ValueError(f"processes: {', '.join(bad)} not among the runs, or with a platforms entry other than "
                          "'cpu' (a process run on the scheduler's devices has none)")
+    if processes:
+        start_process_server()  # in this thread (the main one, where signals can be set), not a run's
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,

@@ -218,7 +218,7 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     only, this process's precision) gives the same history and robustness as the run here, its
     progress events arrive here, its checkpoints are in its folder, and its exception is raised
     here, also from a spawned child where the platform has no forkserver; SIGTERM stops it after
-    its iteration in flight."""
+    its iteration in flight, and leaves the server that the children fork from alive."""
     from tolerances import assert_trees_within, scale_tol
 
     root, result = whole
@@ -235,12 +235,15 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     assert run["history"].keys() == result["history"].keys()
     assert [e["iteration"] for e in events if "iteration" in e] == [1, 2, 3]
     assert checkpoint.all_steps(runner.run_folder(tmp_path, "A", "mdgps") / "checkpoints") == [1, 2, 3]
+    import multiprocessing.forkserver
+
+    server = multiprocessing.forkserver._forkserver._forkserver_pid  # started by run_all, SIGTERM ignored
+    os.kill(server, signal.SIGTERM)  # as a SIGTERM to the whole process group would
     for platform in ("cpu", None):  # None: on this process's devices (the CPU here too)
         with pytest.raises(runner.FolderTaken, match="already hold"):  # the child's error, raised here
             runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler,
                                   platform=platform)
-    import multiprocessing
-
+    assert multiprocessing.forkserver._forkserver._forkserver_pid == server  # the same server
     monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["fork", "spawn"])  # no forkserver
     assert runner._process_context().get_start_method() == "spawn"
     with pytest.raises(runner.FolderTaken, match="already hold"):  # a spawned child, its own imports
