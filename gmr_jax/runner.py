@@ -1106,8 +1106,11 @@ def child_environment(platform: str | None, default_platform: str) -> dict:
     return {}
 
 
-# JAX settings a child run takes from its parent (the CLI sets them before the first computation).
-_CHILD_JAX_CONFIG = ("jax_enable_x64", "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+# JAX settings a child run takes from its parent (the CLI sets them before the first computation):
+# the compilation cache's, and every setting that changes what a trace computes, so that a run in a
+# process of its own computes what it would here.
+_CHILD_JAX_CONFIG = tuple(dict.fromkeys(("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+                                        + program_store_lib.TRACE_SETTINGS))
 
 PRELOADED = ("gmr_jax.runner",)
 """The modules that the server which runs in processes of their own fork from imports once
@@ -1154,8 +1157,8 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    label: str = "", stability: bool = True, devices: int = 1,
                    platform: str | None = "cpu") -> dict:
     """:func:`run` in a process of its own (forked from ``multiprocessing``'s forkserver,
-    :func:`start_process_server`; this process's precision, compilation cache and program
-    store): its Python work (tracing, host callbacks, checkpoints) then does not share this
+    :func:`start_process_server`; this process's JAX settings that change a trace (precision,
+    matmul precision, PRNG), compilation cache and program store): its Python work (tracing, host callbacks, checkpoints) then does not share this
     interpreter's GIL with the other runs. Progress events come back to ``progress_fn``; the
     scheduler's stop request reaches the child (which finishes its iteration in flight); the
     child's exception is raised here.

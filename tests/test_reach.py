@@ -130,6 +130,11 @@ def test_a_child_run_starts_with_its_platform_environment():
     assert runner.in_process_iteration_programs("auto", small("gmr"), "gpu") == "auto"
     assert runner.in_process_iteration_programs("auto", small("gmr"), "cpu") == "parts"
     assert runner.in_process_iteration_programs("whole", small("gmr"), "cpu") == "whole"
+    from gmr_jax import program_store
+
+    # a child takes every setting that changes a trace (and the compilation cache's) from here
+    assert set(program_store.TRACE_SETTINGS) <= set(runner._CHILD_JAX_CONFIG)
+    assert {"jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs"} <= set(runner._CHILD_JAX_CONFIG)
 
 
 def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
