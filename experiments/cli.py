@@ -261,9 +261,8 @@ def resolve_gpu_processes(args) -> list:
     in a process of their own (``runner.run_all``'s ``processes``): none without a GPU; "auto":
     with one seed on one GPU and runs side by side (``--jobs`` not 1) every GPU run but the one
     ``runner.run_order`` starts first (the longest: it starts at once here, the others while
-    their processes start); or the named runs
-    (a named run placed on the host CPU stays there). Raises ValueError for a name that is not
-    one of the study's runs."""
+    their processes start); or the named runs (a named run placed on the host CPU stays there).
+    Raises ValueError for a name that is not one of the study's runs."""
     import jax
 
     on_gpu = [key for key in runner.run_order(args.configs) if key not in args.platforms]

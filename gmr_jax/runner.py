@@ -1158,10 +1158,10 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    platform: str | None = "cpu") -> dict:
     """:func:`run` in a process of its own (forked from ``multiprocessing``'s forkserver,
     :func:`start_process_server`; this process's JAX settings that change a trace (precision,
-    matmul precision, PRNG), compilation cache and program store): its Python work (tracing, host callbacks, checkpoints) then does not share this
-    interpreter's GIL with the other runs. Progress events come back to ``progress_fn``; the
-    scheduler's stop request reaches the child (which finishes its iteration in flight); the
-    child's exception is raised here.
+    matmul precision, PRNG), compilation cache and program store): its Python work (tracing,
+    host callbacks, checkpoints) then does not share this interpreter's GIL with the other runs.
+    Progress events come back to ``progress_fn``; the scheduler's stop request reaches the child
+    (which finishes its iteration in flight); the child's exception is raised here.
 
     ``platform`` "cpu": JAX restricted to the host CPU there, the same computation as
     ``run(..., platform="cpu")`` on ``devices`` CPU devices. None: on the first ``devices`` of
