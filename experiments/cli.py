@@ -21,7 +21,7 @@ import time
 import traceback
 
 from experiments import xla_flags
-from gmr_jax import checkpoint, config, policies, runner, sharding, sstep, tasks
+from gmr_jax import checkpoint, config, mps, policies, runner, sharding, sstep, tasks
 from gmr_jax.program_store import ProgramStore
 from gmr_jax.sim import MJCFError
 
@@ -147,6 +147,15 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "process's pool leaves free (a quarter of the GPU; more with "
                         "XLA_PYTHON_CLIENT_MEM_FRACTION). Runs on the host CPU (--cpu-runs) stay "
                         "there; ignored without a GPU; the choice is written to config.json")
+    p.add_argument("--mps", default="auto", choices=MPS_CHOICES,
+                   help="run the processes of the runs on one GPU under a private CUDA Multi-Process "
+                        "Service daemon (gmr_jax.mps), so that their kernels share the GPU at once "
+                        "instead of in time slices (default: %(default)s: where nvidia-cuda-mps-control "
+                        "is on PATH, with one seed on one GPU and runs side by side; every run then "
+                        "trains on the GPU in a process of its own, unless --cpu-runs or "
+                        "--gpu-runs-in-process say otherwise; benchmarks/RESULTS.md, twenty-ninth "
+                        "session). An MPS daemon already running for this process (CUDA_MPS_PIPE_DIRECTORY "
+                        "or /tmp/nvidia-mps) is used as it is; 'on' fails where none can start")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -176,6 +185,64 @@ def _iteration_programs(args, scenario: str, algorithm: str, cfg, used) -> str:
         choice = runner.in_process_iteration_programs(choice, cfg)
     return runner.iteration_programs_for(choice, cfg, where, args.seeds,
                                          len(used) if where == used[0].platform else 1)
+
+
+MPS_CHOICES = ("auto", "on", "off")
+
+
+def _gpu_allowed() -> bool:
+    """Whether JAX may start a CUDA backend here (``JAX_PLATFORMS`` unset or naming it)."""
+    wanted = os.environ.get("JAX_PLATFORMS", "").lower()
+    return not wanted or any(name in wanted for name in ("cuda", "gpu"))
+
+
+def start_mps(args) -> str | None:
+    """``--mps`` before JAX starts its backend: "started" (a private daemon, ``args.mps_daemon``,
+    this process made its client), "running" (a daemon already serves this process) or None.
+    auto: where the control program exists, a GPU may be used and runs share one GPU (one seed,
+    more than one run, ``--jobs`` not 1, ``--devices`` unset or 1); a daemon that cannot start is
+    skipped with one line on stderr (where the control program exists). on: always; raises
+    ``mps.Unavailable`` where it cannot start."""
+    args.mps_daemon = None
+    if args.mps == "off" or not _gpu_allowed():
+        return None
+    if mps.running_elsewhere():
+        return "running"
+    shared = (args.seeds == 1 and len(args.scenarios) * len(args.algorithms) > 1 and args.jobs != 1
+              and args.devices in (None, 1))
+    if args.mps == "auto" and (not shared or mps.find_control() is None):
+        return None
+    try:
+        daemon = mps.start()
+    except mps.Unavailable as err:
+        if args.mps == "on":
+            raise
+        print(f"note: no CUDA MPS ({err}); runs on one GPU take turns on it (--mps off hides this)",
+              file=sys.stderr)
+        return None
+    if args.mps == "auto" and args.devices is None and daemon.devices > 1:
+        mps.stop(daemon)  # one seed on several GPUs: the runs do not share one
+        return None
+    mps.activate(daemon)
+    if args.gpu_runs_in_process in ("auto", "all") and "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ:
+        # every GPU run trains in a process of its own: this one computes nothing there
+        os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    args.mps_daemon = daemon
+    return "started"
+
+
+def stop_mps(args) -> None:
+    """Stop the private MPS daemon that :func:`start_mps` started, if any."""
+    daemon, args.mps_daemon = getattr(args, "mps_daemon", None), None
+    if daemon is not None:
+        mps.stop(daemon)
+
+
+def jax_backend() -> str:
+    """JAX's default backend ("cpu", "gpu", …), started if it was not."""
+    import jax
+
+    return jax.default_backend()
 
 
 def resolve_backend(args, task: tasks.Task) -> str:
@@ -246,12 +313,14 @@ def _chosen_runs(option: str, value: str, args, auto) -> list:
 def resolve_cpu_runs(args) -> dict:
     """``--cpu-runs`` → {(scenario, algorithm): "cpu"} for the runs to place on the host CPU
     (``runner.run_all``'s ``platforms``): none without a GPU (everything is on the host then),
-    "auto" as ``CPU_RUN_ALGORITHMS`` says for one seed with the C MuJoCo backend, or the named
-    runs. Raises ValueError for a name that is not one of the study's runs."""
+    "auto" as ``CPU_RUN_ALGORITHMS`` says for one seed with the C MuJoCo backend (none under
+    MPS, ``args.mps_state``: every run on the GPU then), or the named runs. Raises ValueError for
+    a name that is not one of the study's runs."""
     import jax
 
     auto = [key for key, cfg in args.configs.items()
-            if args.seeds == 1 and cfg.algorithm in CPU_RUN_ALGORITHMS and cfg.sim.backend == "mujoco"]
+            if args.seeds == 1 and cfg.algorithm in CPU_RUN_ALGORITHMS and cfg.sim.backend == "mujoco"
+            and not getattr(args, "mps_state", None)]
     chosen = _chosen_runs("--cpu-runs", args.cpu_runs, args, auto)
     return {} if jax.default_backend() == "cpu" else {key: "cpu" for key in chosen}
 
@@ -261,14 +330,16 @@ def resolve_gpu_processes(args) -> list:
     in a process of their own (``runner.run_all``'s ``processes``): none without a GPU; "auto":
     with one seed on one GPU and runs side by side (``--jobs`` not 1) every GPU run but the one
     ``runner.run_order`` starts first (the longest: it starts at once here, the others while
-    their processes start); or the named runs (a named run placed on the host CPU stays there).
+    their processes start), and under MPS (``args.mps_state``) every GPU run; or the named runs
+    (a named run placed on the host CPU stays there).
     Raises ValueError for a name that is not one of the study's runs."""
     import jax
 
     on_gpu = [key for key in runner.run_order(args.configs) if key not in args.platforms]
     one_gpu = args.seeds == 1 and (args.devices or len(jax.local_devices())) == 1
+    shared = on_gpu if getattr(args, "mps_state", None) else on_gpu[1:]
     chosen = _chosen_runs("--gpu-runs-in-process", args.gpu_runs_in_process, args,
-                          on_gpu[1:] if one_gpu and args.jobs != 1 else [])
+                          shared if one_gpu and args.jobs != 1 else [])
     return [key for key in on_gpu if key in chosen] if jax.default_backend() == "gpu" else []
 
 
@@ -278,9 +349,12 @@ def process_runs(args) -> list:
     return (list(args.platforms) if args.cpu_runs_in_process else []) + list(args.gpu_processes)
 
 
-def parse_args(task_name: str, argv=None, description: str | None = None) -> argparse.Namespace:
+def parse_args(task_name: str, argv=None, description: str | None = None,
+               start_daemons: bool = False) -> argparse.Namespace:
     """The arguments, with ``args.configs``: {(scenario, algorithm): Config}. Every setting is
-    validated by the configuration itself; a bad one ends argparse's way (usage, exit 2)."""
+    validated by the configuration itself; a bad one ends argparse's way (usage, exit 2). With
+    ``start_daemons`` (the command, not a caller that only parses), ``--mps`` may start a private
+    MPS daemon before JAX's backend starts (``args.mps_state``; stop it with :func:`stop_mps`)."""
     task = tasks.get(task_name)
     p = build_parser(task, description)
     args = p.parse_args(argv)
@@ -294,7 +368,23 @@ def parse_args(task_name: str, argv=None, description: str | None = None) -> arg
     if clash:
         p.error(f"--set: use {', '.join(clash)} for these settings")
     try:
+        args.mps_state = start_mps(args) if start_daemons else None
+    except mps.Unavailable as err:
+        p.error(f"--mps on: {err}; use --mps auto or off")
+    try:
+        return _resolved(p, args, task)
+    except BaseException:
+        stop_mps(args)
+        raise
+
+
+def _resolved(p: argparse.ArgumentParser, args, task: tasks.Task) -> argparse.Namespace:
+    """``parse_args`` after the arguments are read: configurations and run placements."""
+    try:
         backend = resolve_backend(args, task)
+        if args.mps_state == "started" and jax_backend() != "gpu":
+            stop_mps(args)  # the daemon started, but JAX has no GPU backend here
+            args.mps_state = None
         overrides = {**resolve_adam_entries(args), **args.overrides}
         args.configs = {(s, a): config.make(task.name, s, a, iterations=args.iterations,
                                             num_samples=args.samples, task__T=args.T,
@@ -459,6 +549,8 @@ def run_study(args, t_start: float) -> int:
     apart = [f"{s}/{a}" for (s, a) in args.gpu_processes]
     if apart:
         device += f"; {', '.join(apart)} in a process of {'its' if len(apart) == 1 else 'their'} own"
+    if args.mps_state:
+        device += "; under CUDA MPS"
     print(f"gmr-jax {args.task.name} study -> {out}  (device {device}, seeds {seeds})")
     (out / "config.json").write_text(json.dumps({
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
@@ -483,6 +575,8 @@ def run_study(args, t_start: float) -> int:
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         # runs on the GPU trained in a process of their own (--gpu-runs-in-process)
         "gpu_runs_in_process": apart,
+        # --mps: "started" (a private MPS daemon for this command), "running" (one already ran) or null
+        "mps": args.mps_state,
         "host_cpu": host_cpu(),
         "python": platform.python_version(),
         "jax": jax.__version__,
@@ -536,7 +630,14 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
     """``python -m experiments.<task_name>``: returns the exit code."""
     t_start = time.perf_counter() if t_start is None else t_start
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = parse_args(task_name, argv, description)
+    args = parse_args(task_name, argv, description, start_daemons=True)
+    try:
+        return _main(task_name, args, argv, t_start)
+    finally:
+        stop_mps(args)
+
+
+def _main(task_name: str, args, argv: list, t_start: float) -> int:
     args.argv = argv
     if process_runs(args):
         runner.start_process_server()  # it imports while this process prepares the runs

@@ -1,0 +1,181 @@
+"""A private CUDA Multi-Process Service (MPS) daemon: kernels of several processes on one GPU at once.
+
+Without MPS a GPU runs the CUDA contexts of different processes in turns (time slices), so runs
+in processes of their own on one GPU (``runner.run_in_process``) take the sum of their GPU times,
+as they do from one process, where JAX runs a device's programs on one compute stream. One-seed
+S-steps are chains of small kernels that use a few of the GPU's multiprocessors each; under MPS
+the processes' kernels share the multiprocessors instead (benchmarks/RESULTS.md, twenty-ninth
+session).
+
+:func:`start` launches NVIDIA's control daemon (``nvidia-cuda-mps-control -d``) with a pipe and
+log directory of its own in the temporary directory, and :func:`activate` points this process
+(before it starts CUDA) and the processes it starts at it. Only processes with that
+``CUDA_MPS_PIPE_DIRECTORY`` become its clients; other CUDA programs on the machine are not
+affected. :func:`stop` shuts the daemon and its server down; a daemon whose command died without
+stopping it is stopped by the next :func:`start` (:func:`stop_orphans`). Nothing here changes
+the GPU's settings (compute mode, MIG).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import tempfile
+from typing import Iterator, NamedTuple
+
+CONTROL = "nvidia-cuda-mps-control"
+PIPE_VARIABLE, LOG_VARIABLE = "CUDA_MPS_PIPE_DIRECTORY", "CUDA_MPS_LOG_DIRECTORY"
+DEFAULT_PIPE_DIRECTORY = "/tmp/nvidia-mps"
+_PREFIX = "gmr-jax-mps-"
+_OWNER = "owner"
+
+# A client of the daemon in a process of its own: CUDA started, the devices counted and a context
+# made on the first one (which starts the MPS server). Prints the device count; exits non-zero
+# with the CUDA error's name where a step fails.
+_PROBE = r"""
+import ctypes, sys
+try:
+    cuda = ctypes.CDLL("libcuda.so.1")
+except OSError as err:
+    sys.exit(f"libcuda.so.1: {err}")
+def check(rc, what):
+    if rc:
+        name = ctypes.c_char_p()
+        cuda.cuGetErrorName(rc, ctypes.byref(name))
+        sys.exit(f"{what}: {name.value.decode() if name.value else rc}")
+check(cuda.cuInit(0), "cuInit")
+count, device, context = ctypes.c_int(), ctypes.c_int(), ctypes.c_void_p()
+check(cuda.cuDeviceGetCount(ctypes.byref(count)), "cuDeviceGetCount")
+check(cuda.cuDeviceGet(ctypes.byref(device), 0), "cuDeviceGet")
+check(cuda.cuDevicePrimaryCtxRetain(ctypes.byref(context), device), "cuDevicePrimaryCtxRetain")
+cuda.cuDevicePrimaryCtxRelease(device)
+print(count.value)
+"""
+
+
+class Daemon(NamedTuple):
+    """A running private MPS daemon: its ``directory`` (pipes, logs, the owner's pid), the
+    control program and the number of GPUs its clients see."""
+
+    directory: pathlib.Path
+    control: str
+    devices: int
+
+    @property
+    def environment(self) -> dict:
+        """The variables that make a process a client of this daemon."""
+        return environment(self.directory)
+
+
+class Unavailable(RuntimeError):
+    """MPS could not be started here (no control program, no GPU, a failing client); the message
+    is one line."""
+
+
+def environment(directory) -> dict:
+    directory = pathlib.Path(directory)
+    return {PIPE_VARIABLE: str(directory / "pipe"), LOG_VARIABLE: str(directory / "log")}
+
+
+def find_control() -> str | None:
+    """The path of ``nvidia-cuda-mps-control`` on PATH, or None."""
+    return shutil.which(CONTROL)
+
+
+def running_elsewhere(env=None) -> bool:
+    """Whether an MPS daemon that this process would be a client of already runs: the one that
+    ``CUDA_MPS_PIPE_DIRECTORY`` names, else the system's default (``/tmp/nvidia-mps``)."""
+    env = os.environ if env is None else env
+    return (pathlib.Path(env.get(PIPE_VARIABLE) or DEFAULT_PIPE_DIRECTORY) / "control").exists()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _quit(control: str, directory: pathlib.Path) -> None:
+    with contextlib.suppress(OSError, subprocess.SubprocessError):
+        subprocess.run([control], input=b"quit\n", env={**os.environ, **environment(directory)},
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=30, check=False)
+    shutil.rmtree(directory, ignore_errors=True)
+
+
+def stop_orphans(control: str, tmp: str | None = None) -> list[pathlib.Path]:
+    """Stop the private daemons (of this user's earlier commands) whose owner process has died
+    without stopping them; returns their directories."""
+    stopped = []
+    for directory in sorted(pathlib.Path(tmp or tempfile.gettempdir()).glob(f"{_PREFIX}*")):
+        try:
+            owner = int((directory / _OWNER).read_text())
+        except (OSError, ValueError):
+            continue
+        if directory.stat().st_uid == os.getuid() and not _alive(owner):
+            _quit(control, directory)
+            stopped.append(directory)
+    return stopped
+
+
+def start(control: str | None = None, tmp: str | None = None, probe_timeout: float = 60.0) -> Daemon:
+    """Start a private MPS daemon and check it with a client in a process of its own (which also
+    starts the MPS server, so the command's processes do not wait for it). Call :func:`activate`
+    before this process starts CUDA. Raises :class:`Unavailable` (the daemon stopped again)."""
+    control = control or find_control()
+    if control is None:
+        raise Unavailable(f"{CONTROL} is not on PATH")
+    stop_orphans(control, tmp)
+    directory = pathlib.Path(tempfile.mkdtemp(prefix=_PREFIX, dir=tmp))
+    (directory / _OWNER).write_text(str(os.getpid()))
+    env = {**os.environ, **environment(directory)}
+    for name in (PIPE_VARIABLE, LOG_VARIABLE):
+        pathlib.Path(env[name]).mkdir()
+    try:
+        started = subprocess.run([control, "-d"], env=env, capture_output=True, timeout=30, check=False)
+        if started.returncode != 0:
+            raise Unavailable(f"{CONTROL} -d exited with {started.returncode}: "
+                              f"{(started.stderr or started.stdout).decode(errors='replace').strip()[:200]}")
+        probe = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, timeout=probe_timeout,
+                               check=False)
+        if probe.returncode != 0:
+            raise Unavailable("a CUDA client of the MPS daemon failed: "
+                              + (probe.stderr.decode(errors="replace").strip().splitlines() or ["no message"])[-1])
+        return Daemon(directory, control, int(probe.stdout.decode().split()[-1]))
+    except (OSError, subprocess.SubprocessError, Unavailable) as err:
+        _quit(control, directory)
+        raise err if isinstance(err, Unavailable) else Unavailable(f"{CONTROL}: {err}") from err
+
+
+def activate(daemon: Daemon) -> None:
+    """Make this process (when it starts CUDA, so call it before) and every process it starts
+    from now on clients of ``daemon``."""
+    os.environ.update(daemon.environment)
+
+
+def stop(daemon: Daemon) -> None:
+    """Shut ``daemon`` and its server down (after its clients have exited) and remove its
+    directory; this process's environment no longer points at it."""
+    for name, value in daemon.environment.items():
+        if os.environ.get(name) == value:
+            del os.environ[name]
+    _quit(daemon.control, daemon.directory)
+
+
+@contextlib.contextmanager
+def running(control: str | None = None) -> Iterator[Daemon]:
+    """``start``, ``activate``; ``stop`` at the end of the block. Enter it before JAX starts its
+    GPU backend: ``with mps.running(): runner.run_all(..., processes=...)``."""
+    daemon = start(control)
+    activate(daemon)
+    try:
+        yield daemon
+    finally:
+        stop(daemon)
