@@ -132,7 +132,8 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="runs that compute on the host CPU instead of the GPU (default: %(default)s: "
                         "on a GPU with one seed, the MLP policy's runs (mdgps) with C MuJoCo, "
                         "whose S-steps are faster on the host than on an H100 and leave the GPU to "
-                        "the GMR runs; benchmarks/RESULTS.md). Ignored without a GPU; the choice "
+                        "the GMR runs; benchmarks/RESULTS.md; none under MPS, --mps, where all four "
+                        "runs share the GPU at once). Ignored without a GPU; the choice "
                         "is written to config.json; a name that is not a run is refused on any machine")
     p.add_argument("--cpu-runs-in-process", action=argparse.BooleanOptionalAction, default=True,
                    help="train the --cpu-runs in a process of their own (default), so that their "
@@ -143,9 +144,10 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "share the GPU (default: %(default)s: with one seed on one GPU and runs side "
                         "by side, every GPU run but the longest, so that the runs trace, compile and "
                         "drive their loops without sharing one GIL; benchmarks/RESULTS.md, "
-                        "twenty-eighth session). Such a run takes GPU memory from what this "
-                        "process's pool leaves free (a quarter of the GPU; more with "
-                        "XLA_PYTHON_CLIENT_MEM_FRACTION). Runs on the host CPU (--cpu-runs) stay "
+                        "twenty-eighth session; under MPS, --mps, every GPU run). Such a run takes "
+                        "GPU memory from what this process's pool leaves free (a quarter of the GPU; "
+                        "more with XLA_PYTHON_CLIENT_MEM_FRACTION; all of it under MPS, where this "
+                        "process keeps no pool). Runs on the host CPU (--cpu-runs) stay "
                         "there; ignored without a GPU; the choice is written to config.json")
     p.add_argument("--mps", default="auto", choices=MPS_CHOICES,
                    help="run the processes of the runs on one GPU under a private CUDA Multi-Process "
@@ -198,7 +200,9 @@ def _gpu_allowed() -> bool:
 
 def start_mps(args) -> str | None:
     """``--mps`` before JAX starts its backend: "started" (a private daemon, ``args.mps_daemon``,
-    this process made its client), "running" (a daemon already serves this process) or None.
+    whose clients are the processes that this one starts once :func:`parse_args` has started the
+    backend; not this one, so the daemon can stop as soon as they have exited), "running" (a
+    daemon already serves this process) or None.
     auto: where the control program exists, a GPU may be used and runs share one GPU (one seed,
     more than one run, ``--jobs`` not 1, ``--devices`` unset or 1); a daemon that cannot start is
     skipped with one line on stderr (where the control program exists). on: always; raises
@@ -223,7 +227,6 @@ def start_mps(args) -> str | None:
     if args.mps == "auto" and args.devices is None and daemon.devices > 1:
         mps.stop(daemon)  # one seed on several GPUs: the runs do not share one
         return None
-    mps.activate(daemon)
     if args.gpu_runs_in_process in ("auto", "all") and "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ:
         # every GPU run trains in a process of its own: this one computes nothing there
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
@@ -382,9 +385,12 @@ def _resolved(p: argparse.ArgumentParser, args, task: tasks.Task) -> argparse.Na
     """``parse_args`` after the arguments are read: configurations and run placements."""
     try:
         backend = resolve_backend(args, task)
-        if args.mps_state == "started" and jax_backend() != "gpu":
-            stop_mps(args)  # the daemon started, but JAX has no GPU backend here
-            args.mps_state = None
+        if args.mps_state == "started":
+            if jax_backend() == "gpu":  # started outside the daemon: only the runs' processes use it
+                mps.activate(args.mps_daemon)
+            else:  # the daemon started, but JAX has no GPU backend here
+                stop_mps(args)
+                args.mps_state = None
         overrides = {**resolve_adam_entries(args), **args.overrides}
         args.configs = {(s, a): config.make(task.name, s, a, iterations=args.iterations,
                                             num_samples=args.samples, task__T=args.T,

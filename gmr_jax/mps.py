@@ -25,6 +25,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from typing import Iterator, NamedTuple
 
 CONTROL = "nvidia-cuda-mps-control"
@@ -103,10 +104,17 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _quit(control: str, directory: pathlib.Path) -> None:
+def _quit(control: str, directory: pathlib.Path, wait: float = 10.0) -> None:
+    """Ask the daemon to shut down (it does once its clients have exited), wait up to ``wait``
+    seconds for its control socket to go, and remove ``directory``."""
+    env = {**os.environ, **environment(directory)}
     with contextlib.suppress(OSError, subprocess.SubprocessError):
-        subprocess.run([control], input=b"quit\n", env={**os.environ, **environment(directory)},
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=30, check=False)
+        subprocess.run([control], input=b"quit\n", env=env, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL, timeout=30, check=False)
+    socket = pathlib.Path(env[PIPE_VARIABLE]) / "control"
+    deadline = time.monotonic() + wait
+    while socket.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
     shutil.rmtree(directory, ignore_errors=True)
 
 
@@ -125,10 +133,13 @@ def stop_orphans(control: str, tmp: str | None = None) -> list[pathlib.Path]:
     return stopped
 
 
-def start(control: str | None = None, tmp: str | None = None, probe_timeout: float = 60.0) -> Daemon:
+def start(control: str | None = None, tmp: str | None = None, probe_timeout: float = 60.0,
+          probe: str | None = None) -> Daemon:
     """Start a private MPS daemon and check it with a client in a process of its own (which also
-    starts the MPS server, so the command's processes do not wait for it). Call :func:`activate`
-    before this process starts CUDA. Raises :class:`Unavailable` (the daemon stopped again)."""
+    starts the MPS server, so the processes that use it do not wait for it). Raises
+    :class:`Unavailable` (the daemon stopped again). Nothing is a client until :func:`activate`.
+    ``probe``: the client's Python code (default: the CUDA driver's, which prints the device
+    count); ``tmp``: where the daemon's directory goes (default: the temporary directory)."""
     control = control or find_control()
     if control is None:
         raise Unavailable(f"{CONTROL} is not on PATH")
@@ -143,7 +154,7 @@ def start(control: str | None = None, tmp: str | None = None, probe_timeout: flo
         if started.returncode != 0:
             raise Unavailable(f"{CONTROL} -d exited with {started.returncode}: "
                               f"{(started.stderr or started.stdout).decode(errors='replace').strip()[:200]}")
-        probe = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, timeout=probe_timeout,
+        probe = subprocess.run([sys.executable, "-c", probe or _PROBE], env=env, capture_output=True, timeout=probe_timeout,
                                check=False)
         if probe.returncode != 0:
             raise Unavailable("a CUDA client of the MPS daemon failed: "
@@ -155,14 +166,16 @@ def start(control: str | None = None, tmp: str | None = None, probe_timeout: flo
 
 
 def activate(daemon: Daemon) -> None:
-    """Make this process (when it starts CUDA, so call it before) and every process it starts
-    from now on clients of ``daemon``."""
+    """Make every process that this one starts from now on, and this one if it has not started
+    CUDA yet, clients of ``daemon``. A process that started CUDA before stays outside: the
+    daemon then shuts down as soon as the other clients have exited (:func:`stop`)."""
     os.environ.update(daemon.environment)
 
 
 def stop(daemon: Daemon) -> None:
-    """Shut ``daemon`` and its server down (after its clients have exited) and remove its
-    directory; this process's environment no longer points at it."""
+    """Shut ``daemon`` and its server down (once its clients have exited: call it after the
+    processes that used it) and remove its directory; this process's environment no longer
+    points at it."""
     for name, value in daemon.environment.items():
         if os.environ.get(name) == value:
             del os.environ[name]
@@ -171,8 +184,10 @@ def stop(daemon: Daemon) -> None:
 
 @contextlib.contextmanager
 def running(control: str | None = None) -> Iterator[Daemon]:
-    """``start``, ``activate``; ``stop`` at the end of the block. Enter it before JAX starts its
-    GPU backend: ``with mps.running(): runner.run_all(..., processes=...)``."""
+    """``start``, ``activate``; ``stop`` at the end of the block: the processes started inside
+    it are clients (``with mps.running(): runner.run_all(..., processes=...)``); this process
+    too if JAX has not started its GPU backend yet, in which case the daemon outlives the block
+    until this process exits."""
     daemon = start(control)
     activate(daemon)
     try:

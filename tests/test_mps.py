@@ -1,0 +1,150 @@
+"""gmr_jax.mps and the CLI's --mps against a stand-in for nvidia-cuda-mps-control (a shell
+script that logs its calls and keeps the control socket's file as the real daemon does); the real
+daemon runs on GPU machines only (benchmarks/RESULTS.md, twenty-ninth session)."""
+
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+from experiments import cli
+from gmr_jax import mps
+
+FAKE = """#!/bin/sh
+if [ "$1" = "-d" ]; then echo "$CUDA_MPS_PIPE_DIRECTORY -d" >> {log}; touch "$CUDA_MPS_PIPE_DIRECTORY/control"; exit {rc}; fi
+read command; echo "$CUDA_MPS_PIPE_DIRECTORY $command" >> {log}; rm -f "$CUDA_MPS_PIPE_DIRECTORY/control"
+"""
+
+
+def fake_control(tmp_path, rc: int = 0) -> tuple[str, pathlib.Path]:
+    """A stand-in control program in its own folder and the file that logs its calls."""
+    folder, log = tmp_path / "bin", tmp_path / "control.log"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / mps.CONTROL
+    path.write_text(FAKE.format(log=log, rc=rc))
+    path.chmod(0o755)
+    return str(path), log
+
+
+def calls(log: pathlib.Path) -> list[list[str]]:
+    return [line.split() for line in log.read_text().splitlines()] if log.exists() else []
+
+
+def test_a_daemon_starts_serves_the_processes_started_after_activate_and_stops(tmp_path, monkeypatch):
+    """start: the control program runs as a daemon with a pipe and log directory of its own,
+    then a client in a process of its own reports the device count; activate: processes started
+    afterwards see that directory (and so are its clients); stop: "quit" reaches that daemon,
+    the directory goes and this process's environment no longer names it."""
+    control, log = fake_control(tmp_path)
+    monkeypatch.delenv(mps.PIPE_VARIABLE, raising=False)
+    monkeypatch.delenv(mps.LOG_VARIABLE, raising=False)
+    daemon = mps.start(control, tmp=str(tmp_path), probe="import os; print(3 if os.environ['"
+                       + mps.PIPE_VARIABLE + "'].endswith('/pipe') else 0)")
+    pipe = daemon.directory / "pipe"
+    assert daemon.devices == 3 and pipe.is_dir() and (daemon.directory / "log").is_dir()
+    assert (daemon.directory / "owner").read_text() == str(os.getpid())
+    assert calls(log) == [[str(pipe), "-d"]] and (pipe / "control").exists()
+    mps.activate(daemon)
+    seen = subprocess.run([sys.executable, "-c", f"import os; print(os.environ['{mps.PIPE_VARIABLE}'])"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    assert seen == str(pipe) and mps.running_elsewhere()
+    mps.stop(daemon)
+    assert calls(log)[1:] == [[str(pipe), "quit"]]
+    assert not daemon.directory.exists() and mps.PIPE_VARIABLE not in os.environ
+
+
+def test_a_daemon_whose_client_fails_is_stopped_and_named_in_one_line(tmp_path):
+    """A client that cannot start CUDA (here: no device) or a control program that fails: one
+    line naming the cause, and nothing left running or on disk."""
+    control, log = fake_control(tmp_path)
+    with pytest.raises(mps.Unavailable, match=r"^a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE$"):
+        mps.start(control, tmp=str(tmp_path), probe="import sys; sys.exit('cuInit: CUDA_ERROR_NO_DEVICE')")
+    assert [c[-1] for c in calls(log)] == ["-d", "quit"] and not list(tmp_path.glob("gmr-jax-mps-*"))
+    failing, _ = fake_control(tmp_path / "other", rc=3)
+    with pytest.raises(mps.Unavailable, match="exited with 3"):
+        mps.start(failing, tmp=str(tmp_path), probe="print(1)")
+    assert not list(tmp_path.glob("gmr-jax-mps-*"))
+    with pytest.raises(mps.Unavailable, match="not on PATH"):
+        mps.start(None if mps.find_control() is None else "/nonexistent/" + mps.CONTROL, tmp=str(tmp_path))
+
+
+def test_start_stops_the_daemons_of_commands_that_died(tmp_path):
+    """A daemon left by a command that was killed (its owner's pid gone) is stopped and its
+    directory removed by the next start; a live owner's daemon is left alone."""
+    control, log = fake_control(tmp_path)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    orphan, alive = tmp_path / "gmr-jax-mps-orphan", tmp_path / "gmr-jax-mps-alive"
+    for folder, owner in ((orphan, dead.pid), (alive, os.getpid())):
+        (folder / "pipe").mkdir(parents=True)
+        (folder / "owner").write_text(str(owner))
+    daemon = mps.start(control, tmp=str(tmp_path), probe="print(1)")
+    assert [str(orphan / "pipe"), "quit"] in calls(log) and not orphan.exists()
+    assert alive.exists() and not any(c[0] == str(alive / "pipe") for c in calls(log))
+    mps.stop(daemon)
+
+
+def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, capsys):
+    """--mps auto starts a daemon only with one seed, several runs side by side and at most one
+    device, and where the control program exists; on a GPU every run then trains there in a
+    process of its own (none on the host CPU) and this process keeps no GPU pool; without a GPU
+    backend the daemon is stopped again; a daemon already running is used; --mps on fails in one
+    line where none can start; a daemon that fails under auto is skipped with a note."""
+    import jax
+
+    control, log = fake_control(tmp_path)
+    monkeypatch.setenv("PATH", f"{pathlib.Path(control).parent}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setattr(mps, "_PROBE", "print(1)")
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr("tempfile.tempdir", None)
+    for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE, "XLA_PYTHON_CLIENT_PREALLOCATE", "JAX_PLATFORMS"):
+        monkeypatch.delenv(name, raising=False)
+    started = []
+
+    def parse(argv):
+        args = cli.parse_args("reach", ["--backend", "mujoco"] + argv, start_daemons=True)
+        started.append(args.mps_state)
+        placed = ([f"{s}/{a}" for s, a in args.platforms], [f"{s}/{a}" for s, a in args.gpu_processes])
+        cli.stop_mps(args)
+        return placed
+
+    assert parse([]) == ([], []) and started[-1] is None  # a CPU: the daemon started and stopped again
+    assert [c[-1] for c in calls(log)] == ["-d", "quit"]
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "local_devices", lambda *a, **k: [object()])
+    assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "started"
+    assert os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE") == "false"
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")
+    assert mps.PIPE_VARIABLE not in os.environ and not list(tmp_path.glob("gmr-jax-mps-*"))
+    before = len(calls(log))
+    assert parse(["--mps", "off"]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"])
+    assert parse(["--seeds", "2"]) == ([], [])
+    assert parse(["--jobs", "1", "--cpu-runs", "none"]) == ([], [])
+    assert parse(["--scenario", "A", "--algorithm", "gmr"]) == ([], [])
+    assert parse(["--devices", "2"]) == (["A/mdgps", "AB/mdgps"], [])
+    assert started[-5:] == [None] * 5 and len(calls(log)) == before  # none of these started one
+    assert parse(["--mps", "on", "--seeds", "2", "--cpu-runs", "none"]) == ([], []) and started[-1] == "started"
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert parse(["--mps", "on"]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"]) and started[-1] is None
+    monkeypatch.delenv("JAX_PLATFORMS")
+    elsewhere = tmp_path / "system-mps"
+    elsewhere.mkdir()
+    (elsewhere / "control").touch()
+    monkeypatch.setenv(mps.PIPE_VARIABLE, str(elsewhere))
+    before = len(calls(log))
+    assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "running"
+    assert len(calls(log)) == before and (elsewhere / "control").exists()  # used, not started or stopped
+    monkeypatch.delenv(mps.PIPE_VARIABLE)
+    monkeypatch.setattr(mps, "_PROBE", "import sys; sys.exit('cuInit: CUDA_ERROR_NO_DEVICE')")
+    assert parse([]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"]) and started[-1] is None
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "note: no CUDA MPS (a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE); "
+        "runs on one GPU take turns on it (--mps off hides this)")
+    with pytest.raises(SystemExit) as exit_info:
+        parse(["--mps", "on"])
+    assert exit_info.value.code == cli.EXIT_USAGE
+    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
+        "error: --mps on: a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE; use --mps auto or off")
+    assert not list(tmp_path.glob("gmr-jax-mps-*"))
