@@ -104,16 +104,30 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def daemon_processes(directory, proc: str = "/proc", names: tuple[str, ...] = ("nvidia-cuda-mps",)) -> list[int]:
+    """The pids of the MPS processes (the control daemon and its server: names starting with
+    ``names``, as ``proc``'s ``comm`` shortens them) of this user started with ``directory``'s
+    pipe directory as ``CUDA_MPS_PIPE_DIRECTORY``; empty where ``proc`` cannot be read."""
+    wanted = f"{PIPE_VARIABLE}={environment(directory)[PIPE_VARIABLE]}".encode()
+    found = []
+    for entry in pathlib.Path(proc).glob("[0-9]*"):
+        with contextlib.suppress(OSError):
+            if ((entry / "comm").read_text().strip().startswith(names)
+                    and wanted in (entry / "environ").read_bytes().split(b"\0")):
+                found.append(int(entry.name))
+    return sorted(found)
+
+
 def _quit(control: str, directory: pathlib.Path, wait: float = 10.0) -> None:
     """Ask the daemon to shut down (it does once its clients have exited), wait up to ``wait``
-    seconds for its control socket to go, and remove ``directory``."""
+    seconds for its processes to end (the control socket's file outlives them), and remove
+    ``directory``."""
     env = {**os.environ, **environment(directory)}
     with contextlib.suppress(OSError, subprocess.SubprocessError):
         subprocess.run([control], input=b"quit\n", env=env, stdout=subprocess.DEVNULL,
                        stderr=subprocess.DEVNULL, timeout=30, check=False)
-    socket = pathlib.Path(env[PIPE_VARIABLE]) / "control"
     deadline = time.monotonic() + wait
-    while socket.exists() and time.monotonic() < deadline:
+    while daemon_processes(directory) and time.monotonic() < deadline:
         time.sleep(0.05)
     shutil.rmtree(directory, ignore_errors=True)
 

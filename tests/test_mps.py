@@ -148,3 +148,23 @@ def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, 
     assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
         "error: --mps on: a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE; use --mps auto or off")
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
+
+
+def test_the_daemon_processes_are_found_by_name_and_pipe_directory(tmp_path):
+    """``daemon_processes``: a process of the MPS programs' name started with the daemon's pipe
+    directory is found (stop waits for it to end); one of another name with the same directory (a
+    run's process) or of the same name with another directory is not."""
+    env = {**os.environ, **mps.environment(tmp_path / "mine")}
+    other = {**os.environ, **mps.environment(tmp_path / "other")}
+    processes = [subprocess.Popen(["sleep", "30"], env=e) for e in (env, other, env)]
+    try:
+        found = mps.daemon_processes(tmp_path / "mine", names=("sleep",))
+        assert found == sorted(p.pid for p in (processes[0], processes[2]))
+        assert mps.daemon_processes(tmp_path / "mine") == []  # none named like the MPS programs
+        processes[0].kill()
+        processes[0].wait()
+        assert mps.daemon_processes(tmp_path / "mine", names=("sleep",)) == [processes[2].pid]
+    finally:
+        for p in processes:
+            p.kill()
+            p.wait()
