@@ -153,11 +153,14 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="run the processes of the runs on one GPU under a private CUDA Multi-Process "
                         "Service daemon (gmr_jax.mps), so that their kernels share the GPU at once "
                         "instead of in time slices (default: %(default)s: where nvidia-cuda-mps-control "
-                        "is on PATH, with one seed on one GPU and runs side by side; every run then "
-                        "trains on the GPU in a process of its own, unless --cpu-runs or "
-                        "--gpu-runs-in-process say otherwise; benchmarks/RESULTS.md, twenty-ninth "
-                        "session). An MPS daemon already running for this process (CUDA_MPS_PIPE_DIRECTORY "
-                        "or /tmp/nvidia-mps) is used as it is; 'on' fails where none can start")
+                        "is on PATH, with one seed on one GPU and runs side by side in processes of "
+                        "their own, --gpu-runs-in-process not none; every run then trains on the GPU in "
+                        "a process of its own, unless --cpu-runs or --gpu-runs-in-process say "
+                        "otherwise; benchmarks/RESULTS.md, twenty-ninth session). An MPS daemon "
+                        "already running for this process (CUDA_MPS_PIPE_DIRECTORY or /tmp/nvidia-mps) "
+                        "is used as it is. 'on': wherever JAX may use a GPU (where runs do not share "
+                        "one, place them with --gpu-runs-in-process), and one line and exit 2 where no "
+                        "daemon can start")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -198,40 +201,58 @@ def _gpu_allowed() -> bool:
     return not wanted or any(name in wanted for name in ("cuda", "gpu"))
 
 
+def shares_one_gpu(args, gpus: int) -> bool:
+    """Whether the study's runs share one GPU side by side: one seed, more than one run,
+    ``--jobs`` not 1, and one device used (``--devices``, else the ``gpus`` there are)."""
+    return (args.seeds == 1 and len(args.scenarios) * len(args.algorithms) > 1 and args.jobs != 1
+            and (args.devices or gpus) == 1)
+
+
 def start_mps(args) -> str | None:
     """``--mps`` before JAX starts its backend: "started" (a private daemon, ``args.mps_daemon``,
     whose clients are the processes that this one starts once :func:`parse_args` has started the
     backend; not this one, so the daemon can stop as soon as they have exited), "running" (a
     daemon already serves this process) or None.
-    auto: where the control program exists, a GPU may be used and runs share one GPU (one seed,
-    more than one run, ``--jobs`` not 1, ``--devices`` unset or 1); a daemon that cannot start is
-    skipped with one line on stderr (where the control program exists). on: always; raises
-    ``mps.Unavailable`` where it cannot start."""
+    auto: where runs share one GPU (:func:`shares_one_gpu`) in processes of their own
+    (``--gpu-runs-in-process`` not none), a GPU may be used (``JAX_PLATFORMS``) and the control
+    program exists; a daemon that cannot start is skipped with one line on stderr. on: wherever
+    a GPU may be used; raises ``mps.Unavailable`` where none runs or can start. Where every GPU
+    run will train in a process of its own, this process keeps no GPU memory pool."""
     args.mps_daemon = None
-    if args.mps == "off" or not _gpu_allowed():
+    if args.mps == "off":
         return None
-    if mps.running_elsewhere():
-        return "running"
-    shared = (args.seeds == 1 and len(args.scenarios) * len(args.algorithms) > 1 and args.jobs != 1
-              and args.devices in (None, 1))
-    if args.mps == "auto" and (not shared or mps.find_control() is None):
-        return None
-    try:
-        daemon = mps.start()
-    except mps.Unavailable as err:
+    if not _gpu_allowed():
         if args.mps == "on":
-            raise
-        print(f"note: no CUDA MPS ({err}); runs on one GPU take turns on it (--mps off hides this)",
-              file=sys.stderr)
+            raise mps.Unavailable(f"JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS')} leaves JAX no GPU")
         return None
-    if args.mps == "auto" and args.devices is None and daemon.devices > 1:
-        mps.stop(daemon)  # one seed on several GPUs: the runs do not share one
+    if args.mps == "auto" and (args.gpu_runs_in_process == "none" or not shares_one_gpu(args, 1)):
         return None
-    if args.gpu_runs_in_process in ("auto", "all") and "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ:
+    daemon = None
+    if mps.running_elsewhere():
+        state = "running"
+    else:
+        control = mps.find_control()
+        if control is None and args.mps == "auto":
+            return None
+        try:
+            daemon = mps.start(control)
+        except mps.Unavailable as err:
+            if args.mps == "on":
+                raise
+            print(f"note: no CUDA MPS ({err}); runs on one GPU take turns on it (--mps off hides this)",
+                  file=sys.stderr)
+            return None
+        if args.mps == "auto" and not shares_one_gpu(args, daemon.devices):
+            mps.stop(daemon)  # one seed on several GPUs: the runs do not share one
+            return None
+        state = "started"
+    apart = args.gpu_runs_in_process == "all" or (args.gpu_runs_in_process == "auto" and shares_one_gpu(
+        args, daemon.devices if daemon else 1))
+    if apart and "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ:
         # every GPU run trains in a process of its own: this one computes nothing there
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     args.mps_daemon = daemon
-    return "started"
+    return state
 
 
 def stop_mps(args) -> None:
@@ -323,7 +344,7 @@ def resolve_cpu_runs(args) -> dict:
 
     auto = [key for key, cfg in args.configs.items()
             if args.seeds == 1 and cfg.algorithm in CPU_RUN_ALGORITHMS and cfg.sim.backend == "mujoco"
-            and not getattr(args, "mps_state", None)]
+            and not (getattr(args, "mps_state", None) and args.gpu_runs_in_process != "none")]
     chosen = _chosen_runs("--cpu-runs", args.cpu_runs, args, auto)
     return {} if jax.default_backend() == "cpu" else {key: "cpu" for key in chosen}
 
@@ -339,10 +360,9 @@ def resolve_gpu_processes(args) -> list:
     import jax
 
     on_gpu = [key for key in runner.run_order(args.configs) if key not in args.platforms]
-    one_gpu = args.seeds == 1 and (args.devices or len(jax.local_devices())) == 1
-    shared = on_gpu if getattr(args, "mps_state", None) else on_gpu[1:]
+    auto = on_gpu if getattr(args, "mps_state", None) else on_gpu[1:]
     chosen = _chosen_runs("--gpu-runs-in-process", args.gpu_runs_in_process, args,
-                          shared if one_gpu and args.jobs != 1 else [])
+                          auto if shares_one_gpu(args, len(jax.local_devices())) else [])
     return [key for key in on_gpu if key in chosen] if jax.default_backend() == "gpu" else []
 
 
@@ -385,12 +405,13 @@ def _resolved(p: argparse.ArgumentParser, args, task: tasks.Task) -> argparse.Na
     """``parse_args`` after the arguments are read: configurations and run placements."""
     try:
         backend = resolve_backend(args, task)
-        if args.mps_state == "started":
-            if jax_backend() == "gpu":  # started outside the daemon: only the runs' processes use it
-                mps.activate(args.mps_daemon)
-            else:  # the daemon started, but JAX has no GPU backend here
-                stop_mps(args)
-                args.mps_state = None
+        if args.mps_state and jax_backend() != "gpu":  # a daemon, but JAX has no GPU backend here
+            stop_mps(args)
+            args.mps_state = None
+            if args.mps == "on":
+                p.error("--mps on: JAX has no GPU backend here; use --mps auto or off")
+        if args.mps_state == "started":  # started outside the daemon: only the runs' processes use it
+            mps.activate(args.mps_daemon)
         overrides = {**resolve_adam_entries(args), **args.overrides}
         args.configs = {(s, a): config.make(task.name, s, a, iterations=args.iterations,
                                             num_samples=args.samples, task__T=args.T,

@@ -87,11 +87,22 @@ def find_control() -> str | None:
     return shutil.which(CONTROL)
 
 
+def _listening(path: pathlib.Path, unix_sockets: str = "/proc/net/unix") -> bool:
+    """Whether a Unix socket is bound at ``path`` (the control socket's file outlives its daemon);
+    where ``unix_sockets`` cannot be read, whether the file exists."""
+    try:
+        table = pathlib.Path(unix_sockets).read_text()
+    except OSError:
+        return path.exists()
+    return any(line.split()[-1] == str(path) for line in table.splitlines()[1:] if len(line.split()) > 7)
+
+
 def running_elsewhere(env=None) -> bool:
-    """Whether an MPS daemon that this process would be a client of already runs: the one that
-    ``CUDA_MPS_PIPE_DIRECTORY`` names, else the system's default (``/tmp/nvidia-mps``)."""
+    """Whether an MPS daemon that this process would be a client of already runs (its control
+    socket is listening): the one that ``CUDA_MPS_PIPE_DIRECTORY`` names, else the system's
+    default (``/tmp/nvidia-mps``)."""
     env = os.environ if env is None else env
-    return (pathlib.Path(env.get(PIPE_VARIABLE) or DEFAULT_PIPE_DIRECTORY) / "control").exists()
+    return _listening(pathlib.Path(env.get(PIPE_VARIABLE) or DEFAULT_PIPE_DIRECTORY) / "control")
 
 
 def _alive(pid: int) -> bool:
@@ -107,29 +118,33 @@ def _alive(pid: int) -> bool:
 def daemon_processes(directory, proc: str = "/proc", names: tuple[str, ...] = ("nvidia-cuda-mps",)) -> list[int]:
     """The pids of the MPS processes (the control daemon and its server: names starting with
     ``names``, as ``proc``'s ``comm`` shortens them) of this user started with ``directory``'s
-    pipe directory as ``CUDA_MPS_PIPE_DIRECTORY``; empty where ``proc`` cannot be read."""
+    pipe directory as ``CUDA_MPS_PIPE_DIRECTORY``; empty where ``proc`` cannot be read. An
+    exited control daemon that its starter has not reaped yet (a zombie) is not among them: a
+    zombie's ``environ`` reads empty."""
     wanted = f"{PIPE_VARIABLE}={environment(directory)[PIPE_VARIABLE]}".encode()
     found = []
     for entry in pathlib.Path(proc).glob("[0-9]*"):
         with contextlib.suppress(OSError):
-            if ((entry / "comm").read_text().strip().startswith(names)
+            if (entry.stat().st_uid == os.getuid() and (entry / "comm").read_text().strip().startswith(names)
                     and wanted in (entry / "environ").read_bytes().split(b"\0")):
                 found.append(int(entry.name))
     return sorted(found)
 
 
-def _quit(control: str, directory: pathlib.Path, wait: float = 10.0) -> None:
+def _quit(control: str, directory: pathlib.Path, wait: float = 3.0) -> None:
     """Ask the daemon to shut down (it does once its clients have exited), wait up to ``wait``
-    seconds for its processes to end (the control socket's file outlives them), and remove
-    ``directory``."""
+    seconds for its processes to end, and remove ``directory``; a daemon that still serves a
+    client (this process, say) keeps it, and the next :func:`start` removes it once its owner
+    has exited (:func:`stop_orphans`)."""
     env = {**os.environ, **environment(directory)}
     with contextlib.suppress(OSError, subprocess.SubprocessError):
         subprocess.run([control], input=b"quit\n", env=env, stdout=subprocess.DEVNULL,
                        stderr=subprocess.DEVNULL, timeout=30, check=False)
     deadline = time.monotonic() + wait
-    while daemon_processes(directory) and time.monotonic() < deadline:
+    while (alive := daemon_processes(directory)) and time.monotonic() < deadline:
         time.sleep(0.05)
-    shutil.rmtree(directory, ignore_errors=True)
+    if not alive:
+        shutil.rmtree(directory, ignore_errors=True)
 
 
 def stop_orphans(control: str, tmp: str | None = None) -> list[pathlib.Path]:
@@ -137,13 +152,13 @@ def stop_orphans(control: str, tmp: str | None = None) -> list[pathlib.Path]:
     without stopping them; returns their directories."""
     stopped = []
     for directory in sorted(pathlib.Path(tmp or tempfile.gettempdir()).glob(f"{_PREFIX}*")):
-        try:
-            owner = int((directory / _OWNER).read_text())
+        try:  # another command may be removing it at the same moment
+            if directory.stat().st_uid != os.getuid() or _alive(int((directory / _OWNER).read_text())):
+                continue
         except (OSError, ValueError):
             continue
-        if directory.stat().st_uid == os.getuid() and not _alive(owner):
-            _quit(control, directory)
-            stopped.append(directory)
+        _quit(control, directory, wait=1.0)
+        stopped.append(directory)
     return stopped
 
 
@@ -159,49 +174,66 @@ def start(control: str | None = None, tmp: str | None = None, probe_timeout: flo
         raise Unavailable(f"{CONTROL} is not on PATH")
     stop_orphans(control, tmp)
     directory = pathlib.Path(tempfile.mkdtemp(prefix=_PREFIX, dir=tmp))
-    (directory / _OWNER).write_text(str(os.getpid()))
-    env = {**os.environ, **environment(directory)}
-    for name in (PIPE_VARIABLE, LOG_VARIABLE):
-        pathlib.Path(env[name]).mkdir()
     try:
+        (directory / _OWNER).write_text(str(os.getpid()))
+        env = {**os.environ, **environment(directory)}
+        for name in (PIPE_VARIABLE, LOG_VARIABLE):
+            pathlib.Path(env[name]).mkdir()
         started = subprocess.run([control, "-d"], env=env, capture_output=True, timeout=30, check=False)
         if started.returncode != 0:
             raise Unavailable(f"{CONTROL} -d exited with {started.returncode}: "
-                              f"{(started.stderr or started.stdout).decode(errors='replace').strip()[:200]}")
-        probe = subprocess.run([sys.executable, "-c", probe or _PROBE], env=env, capture_output=True, timeout=probe_timeout,
-                               check=False)
-        if probe.returncode != 0:
-            raise Unavailable("a CUDA client of the MPS daemon failed: "
-                              + (probe.stderr.decode(errors="replace").strip().splitlines() or ["no message"])[-1])
-        return Daemon(directory, control, int(probe.stdout.decode().split()[-1]))
-    except (OSError, subprocess.SubprocessError, Unavailable) as err:
+                              f"{_last_line(started.stderr or started.stdout)}")
+        try:
+            client = subprocess.run([sys.executable, "-c", probe or _PROBE], env=env, capture_output=True,
+                                    timeout=probe_timeout, check=False)
+        except subprocess.TimeoutExpired:
+            raise Unavailable(f"a CUDA client of the MPS daemon did not start within {probe_timeout:g} s") from None
+        if client.returncode != 0:
+            raise Unavailable(f"a CUDA client of the MPS daemon failed (exit {client.returncode}): "
+                              f"{_last_line(client.stderr)}")
+        return Daemon(directory, control, int(client.stdout.decode().split()[-1]))
+    except BaseException as err:  # Ctrl-C too: no daemon (and GPU context) left behind
         _quit(control, directory)
-        raise err if isinstance(err, Unavailable) else Unavailable(f"{CONTROL}: {err}") from err
+        if isinstance(err, (OSError, subprocess.SubprocessError, ValueError, IndexError)):
+            raise Unavailable(f"{CONTROL}: {type(err).__name__}: {err}") from err
+        raise
+
+
+def _last_line(output: bytes) -> str:
+    lines = output.decode(errors="replace").strip().splitlines()
+    return lines[-1].strip() if lines else "no message"
+
+
+_PREVIOUS: dict[pathlib.Path, dict] = {}
 
 
 def activate(daemon: Daemon) -> None:
     """Make every process that this one starts from now on, and this one if it has not started
     CUDA yet, clients of ``daemon``. A process that started CUDA before stays outside: the
     daemon then shuts down as soon as the other clients have exited (:func:`stop`)."""
+    _PREVIOUS.setdefault(daemon.directory, {name: os.environ.get(name) for name in daemon.environment})
     os.environ.update(daemon.environment)
 
 
 def stop(daemon: Daemon) -> None:
     """Shut ``daemon`` and its server down (once its clients have exited: call it after the
-    processes that used it) and remove its directory; this process's environment no longer
-    points at it."""
-    for name, value in daemon.environment.items():
-        if os.environ.get(name) == value:
-            del os.environ[name]
+    processes that used it) and remove its directory; this process's environment gets back what
+    it held before :func:`activate`."""
+    for name, value in _PREVIOUS.pop(daemon.directory, {}).items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
     _quit(daemon.control, daemon.directory)
 
 
 @contextlib.contextmanager
 def running(control: str | None = None) -> Iterator[Daemon]:
     """``start``, ``activate``; ``stop`` at the end of the block: the processes started inside
-    it are clients (``with mps.running(): runner.run_all(..., processes=...)``); this process
-    too if JAX has not started its GPU backend yet, in which case the daemon outlives the block
-    until this process exits."""
+    it are clients (``runner.run_all(..., processes=...)`` passes the daemon's variables to its
+    runs' processes, ``runner.child_environment``). Start this process's backend first
+    (``jax.devices()``): a process that starts CUDA inside the block is a client too, and the
+    daemon then outlives the block until that process exits."""
     daemon = start(control)
     activate(daemon)
     try:

@@ -49,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gmr_jax import checkpoint, config, evaluate, mdgps, policies, sharding, tasks
+from gmr_jax import checkpoint, config, evaluate, mdgps, mps, policies, sharding, tasks
 from gmr_jax import program_store as program_store_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax import stability as stability_lib
@@ -1098,11 +1098,14 @@ def child_environment(platform: str | None, default_platform: str) -> dict:
     None: this process's default devices, of ``default_platform``) starts with: JAX on the CPU
     only for the host; beside this process on a GPU, no preallocated pool (XLA's allocator takes
     what the run uses from the memory that this process's pool left free, a quarter of the GPU
-    by default: ``XLA_PYTHON_CLIENT_MEM_FRACTION`` set before the command starts leaves more)."""
+    by default: ``XLA_PYTHON_CLIENT_MEM_FRACTION`` set before the command starts leaves more),
+    and this process's CUDA MPS daemon as it is now (``gmr_jax.mps``: the process server may
+    have started before the daemon)."""
     if platform == "cpu":
         return {"JAX_PLATFORMS": "cpu"}
     if default_platform == "gpu":
-        return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+        return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false",
+                **{name: os.environ[name] for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE) if name in os.environ}}
     return {}
 
 

@@ -1,20 +1,22 @@
 """gmr_jax.mps and the CLI's --mps against a stand-in for nvidia-cuda-mps-control (a shell
-script that logs its calls and keeps the control socket's file as the real daemon does); the real
-daemon runs on GPU machines only (benchmarks/RESULTS.md, twenty-ninth session)."""
+script that logs its calls and leaves a control socket's file, which outlives the real daemon
+too); the real daemon runs on GPU machines only (benchmarks/RESULTS.md, twenty-ninth session)."""
 
 import os
 import pathlib
+import socket
 import subprocess
 import sys
+import time
 
 import pytest
 
 from experiments import cli
-from gmr_jax import mps
+from gmr_jax import mps, runner
 
 FAKE = """#!/bin/sh
 if [ "$1" = "-d" ]; then echo "$CUDA_MPS_PIPE_DIRECTORY -d" >> {log}; touch "$CUDA_MPS_PIPE_DIRECTORY/control"; exit {rc}; fi
-read command; echo "$CUDA_MPS_PIPE_DIRECTORY $command" >> {log}; rm -f "$CUDA_MPS_PIPE_DIRECTORY/control"
+read command; echo "$CUDA_MPS_PIPE_DIRECTORY $command" >> {log}
 """
 
 
@@ -35,11 +37,13 @@ def calls(log: pathlib.Path) -> list[list[str]]:
 def test_a_daemon_starts_serves_the_processes_started_after_activate_and_stops(tmp_path, monkeypatch):
     """start: the control program runs as a daemon with a pipe and log directory of its own,
     then a client in a process of its own reports the device count; activate: processes started
-    afterwards see that directory (and so are its clients); stop: "quit" reaches that daemon,
+    afterwards see that directory (and so are its clients), and so do the runs' GPU processes
+    (``runner.child_environment``); stop: "quit" reaches that daemon,
     the directory goes and this process's environment no longer names it."""
     control, log = fake_control(tmp_path)
-    monkeypatch.delenv(mps.PIPE_VARIABLE, raising=False)
-    monkeypatch.delenv(mps.LOG_VARIABLE, raising=False)
+    for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE):  # absent again after the test, whatever happens
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
     daemon = mps.start(control, tmp=str(tmp_path), probe="import os; print(3 if os.environ['"
                        + mps.PIPE_VARIABLE + "'].endswith('/pipe') else 0)")
     pipe = daemon.directory / "pipe"
@@ -49,25 +53,29 @@ def test_a_daemon_starts_serves_the_processes_started_after_activate_and_stops(t
     mps.activate(daemon)
     seen = subprocess.run([sys.executable, "-c", f"import os; print(os.environ['{mps.PIPE_VARIABLE}'])"],
                           capture_output=True, text=True, check=True).stdout.strip()
-    assert seen == str(pipe) and mps.running_elsewhere()
+    assert seen == str(pipe)
+    # a run's process on the GPU gets them from the runner too (its process server may be older)
+    assert runner.child_environment(None, "gpu")[mps.PIPE_VARIABLE] == str(pipe)
+    assert mps.PIPE_VARIABLE not in runner.child_environment("cpu", "gpu")
     mps.stop(daemon)
     assert calls(log)[1:] == [[str(pipe), "quit"]]
     assert not daemon.directory.exists() and mps.PIPE_VARIABLE not in os.environ
 
 
-def test_a_daemon_whose_client_fails_is_stopped_and_named_in_one_line(tmp_path):
+def test_a_daemon_whose_client_fails_is_stopped_and_named_in_one_line(tmp_path, monkeypatch):
     """A client that cannot start CUDA (here: no device) or a control program that fails: one
     line naming the cause, and nothing left running or on disk."""
     control, log = fake_control(tmp_path)
-    with pytest.raises(mps.Unavailable, match=r"^a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE$"):
+    with pytest.raises(mps.Unavailable, match=r"^a CUDA client of the MPS daemon failed \(exit 1\): cuInit: CUDA_ERROR_NO_DEVICE$"):
         mps.start(control, tmp=str(tmp_path), probe="import sys; sys.exit('cuInit: CUDA_ERROR_NO_DEVICE')")
     assert [c[-1] for c in calls(log)] == ["-d", "quit"] and not list(tmp_path.glob("gmr-jax-mps-*"))
     failing, _ = fake_control(tmp_path / "other", rc=3)
     with pytest.raises(mps.Unavailable, match="exited with 3"):
         mps.start(failing, tmp=str(tmp_path), probe="print(1)")
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
-    with pytest.raises(mps.Unavailable, match="not on PATH"):
-        mps.start(None if mps.find_control() is None else "/nonexistent/" + mps.CONTROL, tmp=str(tmp_path))
+    monkeypatch.setattr(mps, "find_control", lambda: None)
+    with pytest.raises(mps.Unavailable, match=f"^{mps.CONTROL} is not on PATH$"):
+        mps.start(tmp=str(tmp_path))
 
 
 def test_start_stops_the_daemons_of_commands_that_died(tmp_path):
@@ -87,11 +95,12 @@ def test_start_stops_the_daemons_of_commands_that_died(tmp_path):
 
 
 def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, capsys):
-    """--mps auto starts a daemon only with one seed, several runs side by side and at most one
-    device, and where the control program exists; on a GPU every run then trains there in a
-    process of its own (none on the host CPU) and this process keeps no GPU pool; without a GPU
-    backend the daemon is stopped again; a daemon already running is used; --mps on fails in one
-    line where none can start; a daemon that fails under auto is skipped with a note."""
+    """--mps auto starts a daemon only with one seed, several runs side by side in processes of
+    their own and at most one device, and where the control program exists; on a GPU every run
+    then trains there in a process of its own (none on the host CPU) and this process keeps no
+    GPU pool; without a GPU backend the daemon is stopped again; a daemon already running is used;
+    --mps on starts one wherever a GPU may be used and fails in one line where none can start or
+    JAX has no GPU; a daemon that fails under auto is skipped with a note."""
     import jax
 
     control, log = fake_control(tmp_path)
@@ -100,53 +109,70 @@ def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, 
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     monkeypatch.setattr("tempfile.tempdir", None)
     for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE, "XLA_PYTHON_CLIENT_PREALLOCATE", "JAX_PLATFORMS"):
-        monkeypatch.delenv(name, raising=False)
-    started = []
+        monkeypatch.setenv(name, "")  # restored to what it was (absent or set) after the test
+        monkeypatch.delenv(name)
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
+    started, pools = [], []
 
     def parse(argv):
         args = cli.parse_args("reach", ["--backend", "mujoco"] + argv, start_daemons=True)
         started.append(args.mps_state)
+        pools.append(os.environ.pop("XLA_PYTHON_CLIENT_PREALLOCATE", None))
         placed = ([f"{s}/{a}" for s, a in args.platforms], [f"{s}/{a}" for s, a in args.gpu_processes])
         cli.stop_mps(args)
         return placed
 
+    def refused(argv, message):
+        with pytest.raises(SystemExit) as exit_info:
+            parse(argv)
+        assert exit_info.value.code == cli.EXIT_USAGE
+        assert capsys.readouterr().err.strip().splitlines()[-1].endswith(message)
+
     assert parse([]) == ([], []) and started[-1] is None  # a CPU: the daemon started and stopped again
     assert [c[-1] for c in calls(log)] == ["-d", "quit"]
+    refused(["--mps", "on"], "error: --mps on: JAX has no GPU backend here; use --mps auto or off")
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     monkeypatch.setattr(jax, "local_devices", lambda *a, **k: [object()])
     assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "started"
-    assert os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE") == "false"
-    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")
-    assert mps.PIPE_VARIABLE not in os.environ and not list(tmp_path.glob("gmr-jax-mps-*"))
+    assert pools[-1] == "false" and mps.PIPE_VARIABLE not in os.environ
+    assert not list(tmp_path.glob("gmr-jax-mps-*"))
     before = len(calls(log))
     assert parse(["--mps", "off"]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"])
     assert parse(["--seeds", "2"]) == ([], [])
     assert parse(["--jobs", "1", "--cpu-runs", "none"]) == ([], [])
     assert parse(["--scenario", "A", "--algorithm", "gmr"]) == ([], [])
     assert parse(["--devices", "2"]) == (["A/mdgps", "AB/mdgps"], [])
-    assert started[-5:] == [None] * 5 and len(calls(log)) == before  # none of these started one
+    assert parse(["--gpu-runs-in-process", "none"]) == (["A/mdgps", "AB/mdgps"], [])
+    assert started[-6:] == [None] * 6 and len(calls(log)) == before and pools[-6:] == [None] * 6
+    # on: started where runs do not share one GPU too; this process keeps its pool (it trains them)
     assert parse(["--mps", "on", "--seeds", "2", "--cpu-runs", "none"]) == ([], []) and started[-1] == "started"
+    assert pools[-1] is None
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
-    assert parse(["--mps", "on"]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"]) and started[-1] is None
+    assert parse([]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"]) and started[-1] is None
+    refused(["--mps", "on"], "error: --mps on: JAX_PLATFORMS=cpu leaves JAX no GPU; use --mps auto or off")
     monkeypatch.delenv("JAX_PLATFORMS")
     elsewhere = tmp_path / "system-mps"
     elsewhere.mkdir()
-    (elsewhere / "control").touch()
+    (elsewhere / "control").touch()  # a daemon's leftover file: none runs
     monkeypatch.setenv(mps.PIPE_VARIABLE, str(elsewhere))
+    assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "started"
+    assert os.environ[mps.PIPE_VARIABLE] == str(elsewhere)  # the user's setting is back
+    (elsewhere / "control").unlink()
     before = len(calls(log))
-    assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "running"
-    assert len(calls(log)) == before and (elsewhere / "control").exists()  # used, not started or stopped
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as server:
+        server.bind(str(elsewhere / "control"))
+        server.listen()
+        assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "running"
+        assert pools[-1] == "false" and parse(["--seeds", "2"]) == ([], []) and started[-1] is None
+    assert len(calls(log)) == before  # a running daemon is used, not started or stopped
     monkeypatch.delenv(mps.PIPE_VARIABLE)
     monkeypatch.setattr(mps, "_PROBE", "import sys; sys.exit('cuInit: CUDA_ERROR_NO_DEVICE')")
     assert parse([]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"]) and started[-1] is None
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        "note: no CUDA MPS (a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE); "
+        "note: no CUDA MPS (a CUDA client of the MPS daemon failed (exit 1): cuInit: CUDA_ERROR_NO_DEVICE); "
         "runs on one GPU take turns on it (--mps off hides this)")
-    with pytest.raises(SystemExit) as exit_info:
-        parse(["--mps", "on"])
-    assert exit_info.value.code == cli.EXIT_USAGE
-    assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
-        "error: --mps on: a CUDA client of the MPS daemon failed: cuInit: CUDA_ERROR_NO_DEVICE; use --mps auto or off")
+    refused(["--mps", "on"], "error: --mps on: a CUDA client of the MPS daemon failed (exit 1): "
+                             "cuInit: CUDA_ERROR_NO_DEVICE; use --mps auto or off")
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
 
 
@@ -158,6 +184,10 @@ def test_the_daemon_processes_are_found_by_name_and_pipe_directory(tmp_path):
     other = {**os.environ, **mps.environment(tmp_path / "other")}
     processes = [subprocess.Popen(["sleep", "30"], env=e) for e in (env, other, env)]
     try:
+        deadline = time.monotonic() + 30  # Popen returns before the child's exec has renamed it
+        while any(pathlib.Path(f"/proc/{p.pid}/comm").read_text().strip() != "sleep" for p in processes):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
         found = mps.daemon_processes(tmp_path / "mine", names=("sleep",))
         assert found == sorted(p.pid for p in (processes[0], processes[2]))
         assert mps.daemon_processes(tmp_path / "mine") == []  # none named like the MPS programs
@@ -168,3 +198,16 @@ def test_the_daemon_processes_are_found_by_name_and_pipe_directory(tmp_path):
         for p in processes:
             p.kill()
             p.wait()
+
+
+def test_a_daemon_counts_as_running_only_while_its_control_socket_listens(tmp_path):
+    """The control socket's file outlives a daemon: only a listening socket means one runs."""
+    pipe = tmp_path / "pipe"
+    pipe.mkdir()
+    env = {mps.PIPE_VARIABLE: str(pipe)}
+    assert not mps.running_elsewhere(env)
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as server:
+        server.bind(str(pipe / "control"))
+        server.listen()
+        assert mps.running_elsewhere(env)
+    assert (pipe / "control").exists() and not mps.running_elsewhere(env)
