@@ -262,13 +262,6 @@ def stop_mps(args) -> None:
         mps.stop(daemon)
 
 
-def jax_backend() -> str:
-    """JAX's default backend ("cpu", "gpu", …), started if it was not."""
-    import jax
-
-    return jax.default_backend()
-
-
 def resolve_backend(args, task: tasks.Task) -> str:
     """``--backend``: "auto" is "mujoco" on a CPU, and on a GPU "mjx" when the sampling batch
     (seeds × conditions × samples, the largest scenario) reaches the task's
@@ -403,9 +396,11 @@ def parse_args(task_name: str, argv=None, description: str | None = None,
 
 def _resolved(p: argparse.ArgumentParser, args, task: tasks.Task) -> argparse.Namespace:
     """``parse_args`` after the arguments are read: configurations and run placements."""
+    import jax
+
     try:
         backend = resolve_backend(args, task)
-        if args.mps_state and jax_backend() != "gpu":  # a daemon, but JAX has no GPU backend here
+        if args.mps_state and jax.default_backend() != "gpu":  # a daemon, but JAX has no GPU backend here
             stop_mps(args)
             args.mps_state = None
             if args.mps == "on":
@@ -602,7 +597,7 @@ def run_study(args, t_start: float) -> int:
         "cpu_runs_in_process": bool(on_cpu) and args.cpu_runs_in_process,
         # runs on the GPU trained in a process of their own (--gpu-runs-in-process)
         "gpu_runs_in_process": apart,
-        # --mps: "started" (a private MPS daemon for this command), "running" (one already ran) or null
+        # --mps: "started" (a private MPS daemon for this command), "running" (one was already running) or null
         "mps": args.mps_state,
         "host_cpu": host_cpu(),
         "python": platform.python_version(),
