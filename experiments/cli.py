@@ -51,6 +51,21 @@ _positive_int = _int_at_least(1, "a positive integer")
 _nonnegative_int = _int_at_least(0, "an integer ≥ 0")
 
 
+def _niceness_choice(text: str):
+    """An argparse type for ``--process-niceness``: "auto", "off" or a tuple of integers 0 … 19."""
+    text = text.strip()
+    if text in ("auto", "off"):
+        return text
+    try:
+        values = tuple(int(v) for v in text.split(","))
+        for value in values:
+            runner.check_niceness(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be auto, off or comma-separated integers from 0 to 19, got {text!r}") \
+            from None
+    return values
+
+
 def build_parser(task: tasks.Task, description: str | None = None) -> argparse.ArgumentParser:
     base = task.default_config(task.default_scenarios[0])
     p = argparse.ArgumentParser(prog=f"python -m experiments.{task.name}", description=description,
@@ -161,6 +176,15 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "is used as it is. 'on': wherever JAX may use a GPU (where runs do not share "
                         "one, place them with --gpu-runs-in-process), and one line and exit 2 where no "
                         "daemon can start")
+    p.add_argument("--process-niceness", default="auto", type=_niceness_choice, metavar="auto|off|N,N,…",
+                   help="niceness of the runs on the GPU in processes of their own, by the order in "
+                        "which the runs start (the longest first; the last value for every later run), "
+                        "so that the longest run gets the host's cores first while the runs trace and "
+                        "compile (default: %(default)s: "
+                        f"{','.join(map(str, runner.PROCESS_NICENESS))} where every run trains on the GPU "
+                        "in a process of its own, as under MPS, else off; benchmarks/RESULTS.md, thirtieth "
+                        "session). Runs on the host CPU keep this command's niceness: they train on its cores; "
+                        "the choice is written to config.json")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -359,6 +383,20 @@ def resolve_gpu_processes(args) -> list:
     return [key for key in on_gpu if key in chosen] if jax.default_backend() == "gpu" else []
 
 
+def resolve_niceness(args) -> dict:
+    """``--process-niceness`` → {(scenario, algorithm): niceness} for the runs on the GPU in a
+    process of their own (``args.gpu_processes``, in ``runner.run_order``; ``runner.run_all``'s
+    ``niceness``), by their place there, the last value for every later run: "auto"
+    ``runner.PROCESS_NICENESS`` where every run of the study is one of them (and there are
+    several), else none; "off" none; or the values given."""
+    chosen = args.process_niceness
+    if chosen == "off" or (chosen == "auto" and (len(args.gpu_processes) < 2
+                                                 or len(args.gpu_processes) != len(args.configs))):
+        return {}
+    levels = runner.PROCESS_NICENESS if chosen == "auto" else chosen
+    return {key: levels[min(i, len(levels) - 1)] for i, key in enumerate(args.gpu_processes)}
+
+
 def process_runs(args) -> list:
     """The runs trained in a process of their own (``runner.run_all``'s ``processes``): the
     ``--cpu-runs`` with ``--cpu-runs-in-process``, and the ``--gpu-runs-in-process``."""
@@ -419,6 +457,7 @@ def _resolved(p: argparse.ArgumentParser, args, task: tasks.Task) -> argparse.Na
     try:
         args.platforms = resolve_cpu_runs(args)
         args.gpu_processes = resolve_gpu_processes(args)
+        args.niceness = resolve_niceness(args)
     except ValueError as err:
         p.error(str(err))
     return args
@@ -599,6 +638,8 @@ def run_study(args, t_start: float) -> int:
         "gpu_runs_in_process": apart,
         # --mps: "started" (a private MPS daemon for this command), "running" (one was already running) or null
         "mps": args.mps_state,
+        # niceness of the runs in processes of their own on the GPU (--process-niceness)
+        "process_niceness": {f"{s}/{a}": n for (s, a), n in args.niceness.items()},
         "host_cpu": host_cpu(),
         "python": platform.python_version(),
         "jax": jax.__version__,
@@ -614,7 +655,7 @@ def run_study(args, t_start: float) -> int:
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
                               stability=not args.no_stability, platforms=args.platforms,
-                              processes=process_runs(args))
+                              processes=process_runs(args), niceness=args.niceness)
         total = time.perf_counter() - t_runs
         if plotting is not None:
             plotting.result()

@@ -1043,6 +1043,8 @@ def _child_run(job: dict, events, stop_event) -> None:
     or a batch system) and the parent's end are stop requests too: the child finishes its
     iteration in flight like the runs in the parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if job["niceness"]:
+        os.nice(job["niceness"])
     os.environ.update(job["environment"])  # read when JAX starts its backends
     if "JAX_PLATFORMS" in job["environment"]:  # read when JAX was imported (in the server)
         jax.config.update("jax_platforms", job["environment"]["JAX_PLATFORMS"])
@@ -1084,6 +1086,20 @@ def in_process_iteration_programs(choice: str, cfg: config.Config, platform: str
     if platform == "cpu" and choice == "auto" and policies.spec_for(cfg) is not None:
         return "parts"
     return choice
+
+
+PROCESS_NICENESS = (0, 4, 10)
+"""The niceness of the runs on one GPU in processes of their own, by their place in
+:func:`run_order` (the last value for every later run): the runs compete for the host's cores
+only while they trace and compile (their training is the GPU's), so that the longest run gets
+them first and reaches the GPU sooner; the shorter runs, which compile later, still finish first
+(benchmarks/RESULTS.md, thirtieth session)."""
+
+
+def check_niceness(niceness) -> None:
+    """Raises ValueError unless ``niceness`` is an integer 0 … 19 (what ``os.nice`` may add)."""
+    if isinstance(niceness, bool) or not isinstance(niceness, int) or not 0 <= niceness <= 19:
+        raise ValueError(f"niceness: {niceness!r} is not an integer from 0 to 19")
 
 
 def run_order(configs) -> list:
@@ -1158,7 +1174,7 @@ def start_process_server() -> None:
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
                    label: str = "", stability: bool = True, devices: int = 1,
-                   platform: str | None = "cpu") -> dict:
+                   platform: str | None = "cpu", niceness: int = 0) -> dict:
     """:func:`run` in a process of its own (forked from ``multiprocessing``'s forkserver,
     :func:`start_process_server`; this process's JAX settings that change a trace (precision,
     matmul precision, PRNG), compilation cache and program store): its Python work (tracing,
@@ -1170,14 +1186,17 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     ``run(..., platform="cpu")`` on ``devices`` CPU devices. None: on the first ``devices`` of
     this process's default backend, as ``run`` here (a GPU's processes share it; the child's
     memory as :func:`child_environment` says). The iteration's programs as
-    :func:`in_process_iteration_programs` resolves the scheduler's choice."""
+    :func:`in_process_iteration_programs` resolves the scheduler's choice. ``niceness``: added
+    to the child's (``os.nice``, 0 … 19): a lower share of the host's cores while the processes
+    compete for them (:data:`PROCESS_NICENESS`)."""
     if platform not in ("cpu", None):
         raise ValueError(f"platform: {platform!r} is neither 'cpu' nor None (this process's devices)")
+    check_niceness(niceness)
     default_platform = jax.default_backend()
     ctx = _process_context()
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
-           "stability": stability, "devices": devices,
+           "stability": stability, "devices": devices, "niceness": niceness,
            "environment": child_environment(platform, default_platform),
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "iteration_programs": in_process_iteration_programs(
@@ -1216,7 +1235,8 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
 
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
             scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None,
-            stability: bool = True, platforms: dict | None = None, processes=()) -> dict:
+            stability: bool = True, platforms: dict | None = None, processes=(),
+            niceness: dict | None = None) -> dict:
     """Train several configurations side by side (threads), each into ``run_folder(out, …)``.
 
     Args:
@@ -1235,6 +1255,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       processes: the (scenario, algorithm) of runs trained in a process of their own
         (:func:`run_in_process`): on the host CPU where their ``platforms`` entry is "cpu", on
         the scheduler's devices where they have none.
+      niceness: {(scenario, algorithm): niceness} of runs among ``processes`` (``run_in_process``;
+        e.g. :data:`PROCESS_NICENESS` by :func:`run_order`); the others keep this process's.
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:
@@ -1247,13 +1269,19 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     if bad:
         raise ValueError(f"processes: {', '.join(bad)} not among the runs, or with a platforms entry other than "
                          "'cpu' (a process run on the scheduler's devices has none)")
+    niceness = dict(niceness or {})
+    apart = sorted(f"{s}/{a}" for s, a in niceness if (s, a) not in processes)
+    if apart:
+        raise ValueError(f"niceness: {', '.join(apart)} not trained in a process of its own (processes)")
+    for value in niceness.values():
+        check_niceness(value)
     if processes:
         start_process_server()  # in this thread (the main one, where signals can be set), not a run's
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
                            progress_fn=progress_fn, stability=stability, platforms=platforms,
-                           processes=processes)
+                           processes=processes, niceness=niceness)
     order = run_order(configs)
     scheduler.tracing.reset(len(configs) if not jobs or jobs >= len(configs) else 0)
     with (switch_interval(scheduler.switch_interval),
@@ -1267,7 +1295,8 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
                 futures[key] = pool.submit(run_in_process, configs[key], seeds, run_folder(out, *key),
                                            resume=resume, progress_fn=progress_fn, scheduler=scheduler,
                                            label=label, stability=stability,
-                                           devices=scheduler.mesh_for(where).size, platform=where)
+                                           devices=scheduler.mesh_for(where).size, platform=where,
+                                           niceness=niceness.get(key, 0))
             else:
                 futures[key] = pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                            progress_fn=progress_fn, scheduler=scheduler, ticket=i, label=label,

@@ -218,17 +218,28 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     only, this process's precision) gives the same history and robustness as the run here, its
     progress events arrive here, its checkpoints are in its folder, and its exception is raised
     here, also from a spawned child where the platform has no forkserver; SIGTERM stops it after
-    its iteration in flight, and leaves the server that the children fork from alive."""
+    its iteration in flight, and leaves the server that the children fork from alive. The
+    process's niceness is this one's plus the run's ``niceness``."""
     from tolerances import assert_trees_within, scale_tol
 
     root, result = whole
-    events = []
+    events, nice = [], []
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+
+    def progress(event):
+        events.append(event)
+        if event.get("iteration") == 1:  # the child is alive: its niceness
+            import multiprocessing as mp
+
+            child = next(p for p in mp.active_children() if p.name == "gmr-jax A/mdgps")
+            nice.append(os.getpriority(os.PRIO_PROCESS, child.pid))
     # there the scheduler's "auto" compiles the policy's iteration in parts (here: one program),
     # which differ by round-off (test_runner.py's parts test, whose tolerance this is)
     assert runner.in_process_iteration_programs("auto", cfg) == "parts"
     runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=scheduler,
-                          progress_fn=events.append, processes=[("A", "mdgps")],
-                          platforms={("A", "mdgps"): "cpu"})
+                          progress_fn=progress, processes=[("A", "mdgps")],
+                          platforms={("A", "mdgps"): "cpu"}, niceness={("A", "mdgps"): 3})
+    assert nice == [min(mine + 3, 19)]
     run = runs[("A", "mdgps")]
     for got, want in ((run["history"], result["history"]), (run["robustness"], result["robustness"])):
         assert_trees_within(got, want, scale_tol(want))
@@ -263,6 +274,12 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     with pytest.raises(ValueError, match="processes: B/mdgps not among the runs"):
         runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path / "other", scheduler=scheduler,
                        processes=[("B", "mdgps")])
+    with pytest.raises(ValueError, match="niceness: A/mdgps not trained in a process of its own"):
+        runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path / "other", scheduler=scheduler,
+                       niceness={("A", "mdgps"): 1})
+    for bad in (20, -1, 1.5, True):
+        with pytest.raises(ValueError, match="niceness: .* is not an integer from 0 to 19"):
+            runner.run_in_process(cfg, SEEDS, tmp_path / "x", scheduler=scheduler, niceness=bad)
 
 
 def test_missing_mjcf_is_one_line(tmp_path, capsys):

@@ -112,11 +112,12 @@ def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, 
         monkeypatch.setenv(name, "")  # restored to what it was (absent or set) after the test
         monkeypatch.delenv(name)
     monkeypatch.setattr(jax, "default_backend", lambda: "cpu")
-    started, pools = [], []
+    started, pools, nice = [], [], []
 
     def parse(argv):
         args = cli.parse_args("reach", ["--backend", "mujoco"] + argv, start_daemons=True)
         started.append(args.mps_state)
+        nice.append({f"{s}/{a}": n for (s, a), n in args.niceness.items()})
         pools.append(os.environ.pop("XLA_PYTHON_CLIENT_PREALLOCATE", None))
         placed = ([f"{s}/{a}" for s, a in args.platforms], [f"{s}/{a}" for s, a in args.gpu_processes])
         cli.stop_mps(args)
@@ -136,8 +137,20 @@ def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, 
     assert parse([]) == ([], ["AB/gmr", "A/gmr", "AB/mdgps", "A/mdgps"]) and started[-1] == "started"
     assert pools[-1] == "false" and mps.PIPE_VARIABLE not in os.environ
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
+    # every run on the GPU in a process of its own: niceness by the runs' order, the longest first
+    assert nice[-1] == {"AB/gmr": 0, "A/gmr": 4, "AB/mdgps": 10, "A/mdgps": 10} == {
+        f"{s}/{a}": runner.PROCESS_NICENESS[min(i, 2)] for i, (s, a) in enumerate([
+            ("AB", "gmr"), ("A", "gmr"), ("AB", "mdgps"), ("A", "mdgps")])}
+    parse(["--process-niceness", "off"])
+    assert nice[-1] == {}
+    parse(["--process-niceness", "0,1"])
+    assert nice[-1] == {"AB/gmr": 0, "A/gmr": 1, "AB/mdgps": 1, "A/mdgps": 1}
+    refused(["--process-niceness", "0,20"], "argument --process-niceness: must be auto, off or comma-separated "
+                                           "integers from 0 to 19, got '0,20'")
+    parse(["--mps", "off", "--process-niceness", "5"])  # given: the GPU runs in processes only
+    assert nice[-1] == {"A/gmr": 5}
     before = len(calls(log))
-    assert parse(["--mps", "off"]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"])
+    assert parse(["--mps", "off"]) == (["A/mdgps", "AB/mdgps"], ["A/gmr"]) and nice[-1] == {}
     assert parse(["--seeds", "2"]) == ([], [])
     assert parse(["--jobs", "1", "--cpu-runs", "none"]) == ([], [])
     assert parse(["--scenario", "A", "--algorithm", "gmr"]) == ([], [])
