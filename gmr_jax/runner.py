@@ -1088,7 +1088,7 @@ def in_process_iteration_programs(choice: str, cfg: config.Config, platform: str
     return choice
 
 
-PROCESS_NICENESS = (0, 8, 19)
+PROCESS_NICENESS = (0, 4, 10)
 """The niceness of the runs on one GPU in processes of their own, by their place in
 :func:`run_order` (the last value for every later run): the runs compete for the host's cores
 only while they trace and compile (their training is the GPU's), so that the longest run gets

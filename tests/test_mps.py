@@ -138,7 +138,7 @@ def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, 
     assert pools[-1] == "false" and mps.PIPE_VARIABLE not in os.environ
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
     # every run on the GPU in a process of its own: niceness by the runs' order, the longest first
-    assert nice[-1] == {"AB/gmr": 0, "A/gmr": 8, "AB/mdgps": 19, "A/mdgps": 19} == {
+    assert nice[-1] == {"AB/gmr": 0, "A/gmr": 4, "AB/mdgps": 10, "A/mdgps": 10} == {
         f"{s}/{a}": runner.PROCESS_NICENESS[min(i, 2)] for i, (s, a) in enumerate([
             ("AB", "gmr"), ("A", "gmr"), ("AB", "mdgps"), ("A", "mdgps")])}
     parse(["--process-niceness", "off"])
