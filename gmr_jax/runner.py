@@ -32,6 +32,7 @@ import concurrent.futures
 import contextlib
 import dataclasses
 import functools
+import gc
 import json
 import multiprocessing
 import multiprocessing.forkserver
@@ -87,6 +88,31 @@ def jsonable(tree):
 
 def _host(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
+
+
+_gc_lock = threading.Lock()
+_gc_pauses = {"depth": 0, "was_enabled": True}
+
+
+@contextlib.contextmanager
+def gc_paused():
+    """Python's cyclic garbage collector paused (reference counting goes on) for the ``with``
+    block: a trace allocates many objects that live until it ends, so the collector's passes
+    during tracing and lowering find little and took a fifth of their time
+    (benchmarks/RESULTS.md, thirtieth session). Nested and concurrent blocks (threads) keep it
+    paused until the last one ends; it is enabled again only if it was enabled before the first."""
+    with _gc_lock:
+        if _gc_pauses["depth"] == 0:
+            _gc_pauses["was_enabled"] = gc.isenabled()
+            gc.disable()
+        _gc_pauses["depth"] += 1
+    try:
+        yield
+    finally:
+        with _gc_lock:
+            _gc_pauses["depth"] -= 1
+            if _gc_pauses["depth"] == 0 and _gc_pauses["was_enabled"]:
+                gc.enable()
 
 
 class Timer(dict):
@@ -467,16 +493,18 @@ def _traced_and_lowered(name: str, program, cfg: config.Config, args, timer: Tim
                         prefix: str = ""):
     """``program(program_config(cfg), *args)`` lowered: from the scheduler's program store where
     it has one and the program runs on one device, else traced (``{prefix}trace_s``,
-    ``{prefix}lower_s``). Call it under the program's ``jax.default_device``."""
-    if scheduler.program_store is not None and mesh.size == 1 and not _with_host_callbacks(name, cfg):
-        stored = scheduler.program_store.lower(name, program, program_config(cfg), args, _platform(mesh), timer,
-                                               prefix)
-        if stored is not None:
-            return stored
-    with timer(f"{prefix}trace_s"):
-        traced = program.trace(program_config(cfg), *args)
-    with timer(f"{prefix}lower_s"):
-        return traced.lower()
+    ``{prefix}lower_s``), with the garbage collector paused (:func:`gc_paused`). Call it under
+    the program's ``jax.default_device``."""
+    with gc_paused():
+        if scheduler.program_store is not None and mesh.size == 1 and not _with_host_callbacks(name, cfg):
+            stored = scheduler.program_store.lower(name, program, program_config(cfg), args, _platform(mesh),
+                                                   timer, prefix)
+            if stored is not None:
+                return stored
+        with timer(f"{prefix}trace_s"):
+            traced = program.trace(program_config(cfg), *args)
+        with timer(f"{prefix}lower_s"):
+            return traced.lower()
 
 
 def _compile_options(num_seeds: int, mesh) -> dict | None:
@@ -835,7 +863,8 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
     num = k_init.shape[0]
     step = robustness = None
     with scheduler.tracing(ticket):
-        shapes = jax.eval_shape(init, k_init)
+        with gc_paused():
+            shapes = jax.eval_shape(init, k_init)
         state, history = None, []
         if resume:  # the real seeds' shapes are the template: no wait for the initial state
             real = jax.tree_util.tree_map(lambda a: jax.ShapeDtypeStruct((layout.num,) + a.shape[1:], a.dtype),
@@ -861,7 +890,7 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
 
         def warm_up_stability():
             try:
-                with timer("stability_warm_up_s"):
+                with timer("stability_warm_up_s"), gc_paused():
                     stability_lib.warm_up(cfg, shapes.policy.params)
             except Exception:  # noqa: BLE001 (only a head start: the measurement raises it again)
                 pass

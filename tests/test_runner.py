@@ -114,6 +114,39 @@ def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, t
     assert_trees_within(parts["robustness"], result["robustness"], scale_tol(result["robustness"]))
 
 
+def test_gc_paused_nests_across_threads_and_restores_the_collector():
+    """``runner.gc_paused``: the collector is off inside, stays off until the last of nested or
+    concurrent blocks (threads) ends, also after an exception, and comes back only if it was on."""
+    import gc
+
+    assert gc.isenabled()
+    entered, leave = threading.Event(), threading.Event()
+
+    def other():
+        with runner.gc_paused():
+            entered.set()
+            leave.wait(10)
+    thread = threading.Thread(target=other)
+    with runner.gc_paused():
+        assert not gc.isenabled()
+        thread.start()
+        assert entered.wait(10)
+        with pytest.raises(ZeroDivisionError), runner.gc_paused():
+            1 / 0
+        assert not gc.isenabled()
+    assert not gc.isenabled()  # the other thread's block is still open
+    leave.set()
+    thread.join(10)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with runner.gc_paused():
+            pass
+        assert not gc.isenabled()  # off before: left off
+    finally:
+        gc.enable()
+
+
 def test_a_split_run_copies_its_parts_between_two_devices(whole, tmp_path, monkeypatch):
     """``iteration_programs="split"``: the groups of ``runner.SPLIT_PARTS`` in ``runner.HOST_PARTS``
     compiled for the host's CPU, the others for the run's device. Here a second CPU device stands
