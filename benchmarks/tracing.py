@@ -3,8 +3,8 @@
 A cold run traces and lowers its iteration's programs (Python under the GIL) before they can
 compile; the runner pauses Python's cyclic garbage collector meanwhile (``runner.gc_paused``).
 This benchmark traces and lowers the iteration as ``runner.run`` does for one seed on this
-machine's default device (in parts, split between the GPU and the host on a GPU, as
-``--iteration-programs auto`` chooses; no program store), ``--repeats`` times per setting,
+machine's default device with C MuJoCo (as ``--iteration-programs auto`` chooses: one program on
+a CPU, split between the GPU and the host on a GPU; no program store), ``--repeats`` times per setting,
 alternating, each after ``jax.clear_caches()``::
 
     python -m benchmarks.tracing --algorithm gmr --scenario AB --out tracing.json
@@ -51,15 +51,14 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--algorithm", default="gmr", choices=tuple(policies.ALGORITHMS))
     p.add_argument("--scenario", default="AB")
-    p.add_argument("--backend", default="mujoco", choices=("auto", "mjx", "mujoco"))
-    p.add_argument("--precision", default="auto", choices=("auto", "float32", "float64"))
+    cli.add_precision_argument(p)
     p.add_argument("--repeats", type=int, default=3, help="traces per setting (default: %(default)s)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error(f"--repeats must be a positive integer, got {args.repeats}")
     args.precision = cli.setup_jax(args.precision)
-    cfg = config.reach(args.scenario, args.algorithm, sim__backend=args.backend)
+    cfg = config.reach(args.scenario, args.algorithm, sim__backend="mujoco")  # the one-seed runs' physics
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "platform": dev.platform,
            "precision": args.precision, "jax": jax.__version__, "python": platform.python_version(),
