@@ -9,7 +9,8 @@ alternating, each after ``jax.clear_caches()``::
 
     python -m benchmarks.tracing --algorithm gmr --scenario AB --out tracing.json
 
-"paused" is the runner's own path; "collecting" the same with the collector left on.
+"paused" is the runner's own path; "collecting" the same with the collector left on. A full
+collection after each trace (``collect_s``) counts the garbage that the pause leaves for later.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import gc
 import json
 import os
 import platform
@@ -34,8 +36,10 @@ SETTINGS = ("paused", "collecting")
 
 def traced_and_lowered_s(cfg: config.Config, scheduler: runner.Scheduler) -> dict:
     """One trace and lowering of ``cfg``'s iteration for one seed as the runner does it: seconds
-    in all and the runner's own ``trace_s`` and ``lower_s``."""
+    in all, the runner's own ``trace_s`` and ``lower_s``, and ``collect_s``, a full collection
+    right after it (the garbage that a paused collector leaves for later)."""
     jax.clear_caches()
+    gc.collect()
     layout = runner._Layout(scheduler.mesh_for(None), 1)
     _, it_keys = (layout.device(k) for k in runner.seed_keys(cfg, [0]))
     init = functools.partial(runner._program("init", layout.mesh), runner.program_config(cfg))
@@ -43,7 +47,9 @@ def traced_and_lowered_s(cfg: config.Config, scheduler: runner.Scheduler) -> dic
     timer = runner.Timer()
     t0 = time.perf_counter()
     runner._lowered("step", cfg, (shapes, it_keys[:, 0], jnp.asarray(True)), timer, scheduler, layout.mesh)
-    return {"total_s": time.perf_counter() - t0, **{k: float(v) for k, v in timer.items()}}
+    t1 = time.perf_counter()
+    gc.collect()
+    return {"total_s": t1 - t0, "collect_s": time.perf_counter() - t1, **{k: float(v) for k, v in timer.items()}}
 
 
 def main(argv=None) -> int:
@@ -79,10 +85,12 @@ def main(argv=None) -> int:
                     runner.gc_paused = paused
                 r = rows[setting][-1]
                 print(f"  {setting:10s} {r['total_s']:6.2f} s (trace {r.get('trace_s', 0):.2f}, "
-                      f"lower {r.get('lower_s', 0):.2f})", flush=True)
+                      f"lower {r.get('lower_s', 0):.2f}), then a full collection {r['collect_s']:.2f} s", flush=True)
     for setting in SETTINGS:
         totals = [r["total_s"] for r in rows[setting]]
-        print(f"{setting:10s} median {statistics.median(totals):.2f} s, min {min(totals):.2f} s", flush=True)
+        with_collect = [r["total_s"] + r["collect_s"] for r in rows[setting]]
+        print(f"{setting:10s} median {statistics.median(totals):.2f} s, min {min(totals):.2f} s; with the "
+              f"collection after it median {statistics.median(with_collect):.2f} s", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"environment": env, "args": vars(args), "iteration_programs": mode, "runs": rows}, f,

@@ -52,17 +52,21 @@ _nonnegative_int = _int_at_least(0, "an integer ≥ 0")
 
 
 def _niceness_choice(text: str):
-    """An argparse type for ``--process-niceness``: "auto", "off" or a tuple of integers 0 … 19."""
+    """An argparse type for ``--process-niceness``: "auto", "off" or a tuple of niceness
+    increments (``runner.check_niceness``)."""
     text = text.strip()
     if text in ("auto", "off"):
         return text
     try:
         values = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be auto, off or comma-separated integers from 0 to "
+                                         f"{runner.MAX_NICENESS}, got {text!r}") from None
+    try:
         for value in values:
             runner.check_niceness(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be auto, off or comma-separated integers from 0 to 19, got {text!r}") \
-            from None
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
     return values
 
 
@@ -177,14 +181,16 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                         "one, place them with --gpu-runs-in-process), and one line and exit 2 where no "
                         "daemon can start")
     p.add_argument("--process-niceness", default="auto", type=_niceness_choice, metavar="auto|off|N,N,…",
-                   help="niceness of the runs on the GPU in processes of their own, by the order in "
-                        "which the runs start (the longest first; the last value for every later run), "
-                        "so that the longest run gets the host's cores first while the runs trace and "
-                        "compile (default: %(default)s: "
-                        f"{','.join(map(str, runner.PROCESS_NICENESS))} where every run trains on the GPU "
-                        "in a process of its own, as under MPS, else off; benchmarks/RESULTS.md, thirtieth "
-                        "session). Runs on the host CPU keep this command's niceness: they train on its cores; "
-                        "the choice is written to config.json")
+                   help="niceness added to the processes of the runs trained on the GPU in a process of "
+                        "their own (to this command's; the sum capped at 19), in the order the runs start "
+                        "(runner.run_order: the longest first; the last value for every later run), so "
+                        "that the longest run gets the host's cores first while the processes compile "
+                        "(default: %(default)s: "
+                        f"{','.join(map(str, runner.PROCESS_NICENESS))} where every run of the study is "
+                        "such a process, as under MPS, else none; benchmarks/RESULTS.md, thirtieth "
+                        "session). Runs placed on the host CPU (--cpu-runs) keep this command's niceness: "
+                        "their training fills its cores, and a lower priority slowed it (twenty-eighth "
+                        "session). Each process's added niceness is written to config.json")
     p.add_argument("--debug", action="store_true", help="show tracebacks of failures")
     return p
 
@@ -386,15 +392,14 @@ def resolve_gpu_processes(args) -> list:
 def resolve_niceness(args) -> dict:
     """``--process-niceness`` → {(scenario, algorithm): niceness} for the runs on the GPU in a
     process of their own (``args.gpu_processes``, in ``runner.run_order``; ``runner.run_all``'s
-    ``niceness``), by their place there, the last value for every later run: "auto"
-    ``runner.PROCESS_NICENESS`` where every run of the study is one of them (and there are
-    several), else none; "off" none; or the values given."""
+    ``niceness``) by ``runner.niceness_by_order``: "auto" ``runner.PROCESS_NICENESS`` where every
+    run of the study is one of them (and there are several), else none; "off" none; or the
+    values given."""
     chosen = args.process_niceness
     if chosen == "off" or (chosen == "auto" and (len(args.gpu_processes) < 2
                                                  or len(args.gpu_processes) != len(args.configs))):
         return {}
-    levels = runner.PROCESS_NICENESS if chosen == "auto" else chosen
-    return {key: levels[min(i, len(levels) - 1)] for i, key in enumerate(args.gpu_processes)}
+    return runner.niceness_by_order(args.gpu_processes, runner.PROCESS_NICENESS if chosen == "auto" else chosen)
 
 
 def process_runs(args) -> list:

@@ -99,8 +99,10 @@ def gc_paused():
     """Python's cyclic garbage collector paused (reference counting goes on) for the ``with``
     block: a trace allocates many objects that live until it ends, so the collector's passes
     during tracing and lowering find little and took a fifth of their time
-    (benchmarks/RESULTS.md, thirtieth session). Nested and concurrent blocks (threads) keep it
-    paused until the last one ends; it is enabled again only if it was enabled before the first."""
+    (benchmarks/RESULTS.md, thirtieth session). For tracing and lowering only: the pause holds
+    for the whole process (every thread's garbage waits). Nested and concurrent blocks (threads)
+    keep it paused until the last one ends; it is enabled again only if it was enabled before
+    the first."""
     with _gc_lock:
         if _gc_pauses["depth"] == 0:
             _gc_pauses["was_enabled"] = gc.isenabled()
@@ -890,7 +892,7 @@ def _prepare(cfg, seeds, layout: _Layout, k_init, it_keys, ckpt_dir, resume, sto
 
         def warm_up_stability():
             try:
-                with timer("stability_warm_up_s"), gc_paused():
+                with timer("stability_warm_up_s"):
                     stability_lib.warm_up(cfg, shapes.policy.params)
             except Exception:  # noqa: BLE001 (only a head start: the measurement raises it again)
                 pass
@@ -1072,14 +1074,14 @@ def _child_run(job: dict, events, stop_event) -> None:
     or a batch system) and the parent's end are stop requests too: the child finishes its
     iteration in flight like the runs in the parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if job["niceness"]:
-        os.nice(job["niceness"])
     os.environ.update(job["environment"])  # read when JAX starts its backends
     if "JAX_PLATFORMS" in job["environment"]:  # read when JAX was imported (in the server)
         jax.config.update("jax_platforms", job["environment"]["JAX_PLATFORMS"])
     for name, value in job["jax_config"].items():
         jax.config.update(name, value)
     try:
+        if job["niceness"]:
+            os.nice(job["niceness"])
         store = None if job["program_store"] is None else program_store_lib.ProgramStore(job["program_store"])
         with Scheduler(job["compile_jobs"], job["devices"], switch_interval=None,
                        iteration_programs=job["iteration_programs"], program_store=store) as scheduler:
@@ -1118,17 +1120,32 @@ def in_process_iteration_programs(choice: str, cfg: config.Config, platform: str
 
 
 PROCESS_NICENESS = (0, 4, 10)
-"""The niceness of the runs on one GPU in processes of their own, by their place in
-:func:`run_order` (the last value for every later run): the runs compete for the host's cores
-only while they trace and compile (their training is the GPU's), so that the longest run gets
-them first and reaches the GPU sooner; the shorter runs, which compile later, still finish first
-(benchmarks/RESULTS.md, thirtieth session)."""
+"""The niceness added to the processes of runs that share one GPU, by their place in
+:func:`run_order` (:func:`niceness_by_order`). Their processes fill the host's cores only while
+they compile; then the longest run gets the cores first and reaches the GPU sooner, and the
+shorter runs, which compile later, still finish first. Their training uses the host too (C MuJoCo
+rollouts, the split runs' host parts) but leaves cores free, so the lower priority did not slow
+it (benchmarks/RESULTS.md, thirtieth session)."""
+
+MAX_NICENESS = 19
+"""The largest niceness a process can have (Linux): ``os.nice`` caps the sum there."""
 
 
 def check_niceness(niceness) -> None:
-    """Raises ValueError unless ``niceness`` is an integer 0 … 19 (what ``os.nice`` may add)."""
-    if isinstance(niceness, bool) or not isinstance(niceness, int) or not 0 <= niceness <= 19:
-        raise ValueError(f"niceness: {niceness!r} is not an integer from 0 to 19")
+    """Raises ValueError unless ``niceness`` is an integer 0 … :data:`MAX_NICENESS` (an increment
+    for ``os.nice``) and this system can lower a process's priority (``os.nice`` exists)."""
+    if isinstance(niceness, bool) or not isinstance(niceness, int) or not 0 <= niceness <= MAX_NICENESS:
+        raise ValueError(f"niceness: {niceness!r} is not an integer from 0 to {MAX_NICENESS}")
+    if niceness and not hasattr(os, "nice"):
+        raise ValueError(f"niceness: {niceness}: this system has no os.nice; use 0")
+
+
+def niceness_by_order(keys, levels=PROCESS_NICENESS) -> dict:
+    """{key: niceness}: ``levels[i]`` for the i-th of ``keys`` (runs in :func:`run_order`, the
+    longest first), the last level for every later one (``run_all``'s ``niceness``)."""
+    if not levels:
+        raise ValueError("niceness levels: none given")
+    return {key: levels[min(i, len(levels) - 1)] for i, key in enumerate(keys)}
 
 
 def run_order(configs) -> list:
@@ -1216,8 +1233,8 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     this process's default backend, as ``run`` here (a GPU's processes share it; the child's
     memory as :func:`child_environment` says). The iteration's programs as
     :func:`in_process_iteration_programs` resolves the scheduler's choice. ``niceness``: added
-    to the child's (``os.nice``, 0 … 19): a lower share of the host's cores while the processes
-    compete for them (:data:`PROCESS_NICENESS`)."""
+    to the child's, which is this process's (``os.nice``; the sum capped at 19): a lower share of
+    the host's cores while the processes compete for them (:data:`PROCESS_NICENESS`)."""
     if platform not in ("cpu", None):
         raise ValueError(f"platform: {platform!r} is neither 'cpu' nor None (this process's devices)")
     check_niceness(niceness)
@@ -1284,8 +1301,9 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       processes: the (scenario, algorithm) of runs trained in a process of their own
         (:func:`run_in_process`): on the host CPU where their ``platforms`` entry is "cpu", on
         the scheduler's devices where they have none.
-      niceness: {(scenario, algorithm): niceness} of runs among ``processes`` (``run_in_process``;
-        e.g. :data:`PROCESS_NICENESS` by :func:`run_order`); the others keep this process's.
+      niceness: {(scenario, algorithm): niceness} added to the processes of runs among
+        ``processes`` (``run_in_process``; e.g. ``niceness_by_order(run_order(configs))``); the
+        others keep this process's.
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:

@@ -280,6 +280,11 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     for bad in (20, -1, 1.5, True):
         with pytest.raises(ValueError, match="niceness: .* is not an integer from 0 to 19"):
             runner.run_in_process(cfg, SEEDS, tmp_path / "x", scheduler=scheduler, niceness=bad)
+        with pytest.raises(ValueError, match="niceness: .* is not an integer from 0 to 19"):
+            runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path / "other", scheduler=scheduler,
+                           processes=[("A", "mdgps")], platforms={("A", "mdgps"): "cpu"},
+                           niceness={("A", "mdgps"): bad})
+    assert runner.niceness_by_order("abcd", (0, 4)) == {"a": 0, "b": 4, "c": 4, "d": 4}
 
 
 def test_missing_mjcf_is_one_line(tmp_path, capsys):

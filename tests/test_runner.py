@@ -119,6 +119,9 @@ def test_gc_paused_nests_across_threads_and_restores_the_collector():
     concurrent blocks (threads) ends, also after an exception, and comes back only if it was on."""
     import gc
 
+    deadline = time.monotonic() + 30  # a background trace of an earlier test may still hold a pause
+    while not gc.isenabled() and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert gc.isenabled()
     entered, leave = threading.Event(), threading.Event()
 
