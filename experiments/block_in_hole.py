@@ -19,6 +19,12 @@ _T_START = time.perf_counter()  # before the heavy imports: the command's total 
 
 import sys  # noqa: E402
 
+if __name__ == "__main__":
+    # the server that the runs' processes fork from imports JAX while this process does
+    from gmr_jax import process_server  # noqa: E402 (imports no JAX)
+
+    process_server.start_where_a_gpu_is()
+
 from experiments import cli  # noqa: E402
 
 

@@ -21,7 +21,7 @@ import time
 import traceback
 
 from experiments import xla_flags
-from gmr_jax import checkpoint, config, mps, policies, runner, sharding, sstep, tasks
+from gmr_jax import checkpoint, config, mps, policies, process_server, runner, sharding, sstep, tasks
 from gmr_jax.program_store import ProgramStore
 from gmr_jax.sim import MJCFError
 
@@ -225,12 +225,6 @@ def _iteration_programs(args, scenario: str, algorithm: str, cfg, used) -> str:
 MPS_CHOICES = ("auto", "on", "off")
 
 
-def _gpu_allowed() -> bool:
-    """Whether JAX may start a CUDA backend here (``JAX_PLATFORMS`` unset or naming it)."""
-    wanted = os.environ.get("JAX_PLATFORMS", "").lower()
-    return not wanted or any(name in wanted for name in ("cuda", "gpu"))
-
-
 def shares_one_gpu(args, gpus: int) -> bool:
     """Whether the study's runs share one GPU side by side: one seed, more than one run,
     ``--jobs`` not 1, and one device used (``--devices``, else the ``gpus`` there are)."""
@@ -251,7 +245,7 @@ def start_mps(args) -> str | None:
     args.mps_daemon = None
     if args.mps == "off":
         return None
-    if not _gpu_allowed():
+    if not process_server.gpu_allowed():
         if args.mps == "on":
             raise mps.Unavailable(f"JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS')} leaves JAX no GPU")
         return None
@@ -708,7 +702,7 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
 def _main(task_name: str, args, argv: list, t_start: float) -> int:
     args.argv = argv
     if process_runs(args):
-        runner.start_process_server()  # it imports while this process prepares the runs
+        process_server.start()  # it imports while this process prepares the runs (if not yet started)
     prog = f"python -m experiments.{task_name}"
     args.precision = setup_jax(args.precision, args.autotune, not args.nondeterministic,
                                args.compilation_cache)

@@ -35,7 +35,6 @@ import functools
 import gc
 import json
 import multiprocessing
-import multiprocessing.forkserver
 import os
 import pathlib
 import pickle
@@ -51,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmr_jax import checkpoint, config, evaluate, mdgps, mps, policies, sharding, tasks
+from gmr_jax import process_server
 from gmr_jax import program_store as program_store_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax import stability as stability_lib
@@ -399,10 +399,24 @@ class _Layout(NamedTuple):
         return sharding.unpad(tree, self.num)
 
 
-def seed_keys(cfg: config.Config, seeds) -> tuple[jax.Array, jax.Array]:
-    """(init keys [S], iteration keys [S, iterations]) of the seeds, as ``mdgps.train`` uses them."""
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _seed_keys(seeds: tuple, iterations: int) -> tuple[jax.Array, jax.Array]:
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    return jax.vmap(lambda k: mdgps.iteration_keys(k, cfg.iterations))(keys)
+    return jax.vmap(lambda k: mdgps.iteration_keys(k, iterations))(keys)
+
+
+def seed_keys(cfg: config.Config, seeds) -> tuple[np.ndarray, np.ndarray]:
+    """(init keys [S], iteration keys [S, iterations]) of the seeds, as ``mdgps.train`` uses them,
+    on the host. Derived by one program on the host CPU where JAX has one (the same bits on every
+    platform: threefry is integer arithmetic): a run's first computation, which one-by-one
+    operations on a GPU would compile as several programs before its tracing can start
+    (benchmarks/RESULTS.md, thirty-first session)."""
+    try:
+        device = jax.local_devices(backend="cpu")[0]
+    except RuntimeError:  # JAX_PLATFORMS without the host CPU
+        device = jax.local_devices()[0]
+    with jax.default_device(device):
+        return jax.device_get(_seed_keys(tuple(int(s) for s in seeds), cfg.iterations))
 
 
 def initial_state(cfg: config.Config, seeds) -> mdgps.TrainState:
@@ -1177,52 +1191,12 @@ def child_environment(platform: str | None, default_platform: str) -> dict:
 _CHILD_JAX_CONFIG = tuple(dict.fromkeys(("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
                                         + program_store_lib.TRACE_SETTINGS))
 
-PRELOADED = ("gmr_jax.runner",)
-"""The modules that the server which runs in processes of their own fork from imports once
-(``multiprocessing``'s forkserver): a child starts without importing JAX, MuJoCo and this
-package again (about 2 s on an H100 machine's host, benchmarks/RESULTS.md, twenty-eighth
-session)."""
-
-
-def _process_context():
-    """The forkserver's context, or spawn's where the platform has no forkserver (Windows): the
-    child applies its :func:`child_environment` itself, so either way it computes the same."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(list(PRELOADED))  # only read when the server starts
-    return ctx
-
-
-def start_process_server() -> None:
-    """Start the server that :func:`run_in_process` forks its children from (with ``PRELOADED``
-    imported), so that it imports while this process prepares its runs; ``run_in_process``
-    starts it itself otherwise (nothing to start without a forkserver). It inherits this
-    process's environment (XLA_FLAGS: set it first) and ends with this process."""
-    if _process_context().get_start_method() != "forkserver":
-        return
-    if threading.current_thread() is not threading.main_thread():
-        multiprocessing.forkserver.ensure_running()
-        return
-    # Started with SIGINT and SIGTERM ignored (kept across its exec): a Ctrl-C while it imports
-    # reaches this process only, and a SIGTERM to the whole process group (``timeout``, a batch
-    # system) leaves it alive: without it this process could no longer learn how its children
-    # are (their exit code reads 255) and would take them for dead while they finish their
-    # iteration. It ends with this process all the same.
-    before = {sig: signal.signal(sig, signal.SIG_IGN) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        multiprocessing.forkserver.ensure_running()
-    finally:
-        for sig, handler in before.items():
-            signal.signal(sig, handler)
-
-
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
                    label: str = "", stability: bool = True, devices: int = 1,
                    platform: str | None = "cpu", niceness: int = 0) -> dict:
     """:func:`run` in a process of its own (forked from ``multiprocessing``'s forkserver,
-    :func:`start_process_server`; this process's JAX settings that change a trace (precision,
+    ``process_server.start``; this process's JAX settings that change a trace (precision,
     matmul precision, PRNG), compilation cache and program store): its Python work (tracing,
     host callbacks, checkpoints) then does not share this interpreter's GIL with the other runs.
     Progress events come back to ``progress_fn``; the scheduler's stop request reaches the child
@@ -1239,7 +1213,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
         raise ValueError(f"platform: {platform!r} is neither 'cpu' nor None (this process's devices)")
     check_niceness(niceness)
     default_platform = jax.default_backend()
-    ctx = _process_context()
+    ctx = process_server.context()
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
            "stability": stability, "devices": devices, "niceness": niceness,
@@ -1323,7 +1297,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
     for value in niceness.values():
         check_niceness(value)
     if processes:
-        start_process_server()  # in this thread (the main one, where signals can be set), not a run's
+        process_server.start()  # in this thread (the main one, where signals can be set), not a run's
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,

@@ -32,7 +32,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from experiments import cli, diagnose, reach
-from gmr_jax import checkpoint, runner, sim
+from gmr_jax import checkpoint, process_server, runner, sim
 from test_mdgps import small
 
 SEEDS = [0, 1]
@@ -214,7 +214,7 @@ def test_side_by_side_runs_take_their_turns_and_a_failed_one_holds_nobody_up(cfg
 
 def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp_path, monkeypatch):
     """``runner.run_all(..., processes=...)``: a run trained in a process of its own (forked from
-    the server that has imported the package, ``runner.start_process_server``; JAX on the CPU
+    the server that has imported the package, ``process_server.start``; JAX on the CPU
     only, this process's precision) gives the same history and robustness as the run here, its
     progress events arrive here, its checkpoints are in its folder, and its exception is raised
     here, also from a spawned child where the platform has no forkserver; SIGTERM stops it after
@@ -256,7 +256,7 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
                                   platform=platform)
     assert multiprocessing.forkserver._forkserver._forkserver_pid == server  # the same server
     monkeypatch.setattr(multiprocessing, "get_all_start_methods", lambda: ["fork", "spawn"])  # no forkserver
-    assert runner._process_context().get_start_method() == "spawn"
+    assert process_server.context().get_start_method() == "spawn"
     with pytest.raises(runner.FolderTaken, match="already hold"):  # a spawned child, its own imports
         runner.run_in_process(cfg, SEEDS, runner.run_folder(tmp_path, "A", "mdgps"), scheduler=scheduler)
     monkeypatch.undo()

@@ -114,6 +114,25 @@ def test_a_run_with_its_iteration_in_parts_equals_the_whole_program_run(whole, t
     assert_trees_within(parts["robustness"], result["robustness"], scale_tol(result["robustness"]))
 
 
+def test_seed_keys_are_each_seeds_own_derivation_on_the_host():
+    """``seed_keys`` (one program on the host CPU) gives, bit for bit, what each seed's key gives
+    through ``mdgps.iteration_keys`` one operation at a time, as host arrays; the iteration keys
+    of a shorter run are the first ones of a longer run's."""
+    from gmr_jax import mdgps
+
+    cfg = small("mdgps", iterations=3)
+    seeds = [0, 7, 2**31 - 1]
+    k_init, it_keys = runner.seed_keys(cfg, seeds)
+    assert isinstance(k_init, np.ndarray) and isinstance(it_keys, np.ndarray)
+    assert k_init.shape == (3, 2) and it_keys.shape == (3, cfg.iterations, 2)
+    for i, seed in enumerate(seeds):
+        want_init, want_keys = mdgps.iteration_keys(jax.random.PRNGKey(seed), cfg.iterations)
+        np.testing.assert_array_equal(k_init[i], np.asarray(want_init))
+        np.testing.assert_array_equal(it_keys[i], np.asarray(want_keys))
+    longer = runner.seed_keys(dataclasses.replace(cfg, iterations=5), seeds)[1]
+    np.testing.assert_array_equal(longer[:, :3], it_keys)
+
+
 def test_gc_paused_nests_across_threads_and_restores_the_collector():
     """``runner.gc_paused``: the collector is off inside, stays off until the last of nested or
     concurrent blocks (threads) ends, also after an exception, and comes back only if it was on."""
