@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import ast
 import concurrent.futures
+import contextlib
 import json
 import os
 import pathlib
@@ -646,19 +647,21 @@ def run_study(args, t_start: float) -> int:
     for (scenario, algorithm), cfg in args.configs.items():
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
-    with runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs,
-                          program_store=store) as scheduler:
+    figures = None if args.no_plots else report.figure_workers()
+    with (runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs,
+                           program_store=store) as scheduler, figures or contextlib.nullcontext()):
         _stop_on_signals(scheduler)
-        plotting = None if args.no_plots else scheduler.pool.submit(report.preload_plotting)
+        plotting = None if args.no_plots or figures else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
                               stability=not args.no_stability, platforms=args.platforms,
                               processes=process_runs(args), niceness=args.niceness)
         total = time.perf_counter() - t_runs
-        if plotting is not None:
-            plotting.result()
-            report.plot_all(out, args.configs, runs)
+        if not args.no_plots:
+            if plotting is not None:
+                plotting.result()
+            report.plot_all(out, args.configs, runs, figures)
     results = report.write_results(out, args.configs, runs, seeds, device, total,
                                    command_s=time.perf_counter() - t_start, start_s=t_runs - t_start)
     report.write_summary(out / "summary.md", args.configs, runs, seeds, device, total, results)

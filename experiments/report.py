@@ -6,17 +6,23 @@ scenarios' conditions and the paper's reference numbers.
 
 from __future__ import annotations
 
+import concurrent.futures
 import gzip
 import json
+import os
 import pathlib
+import sys
 
 import numpy as np
 
-from gmr_jax import stats, tasks
+from gmr_jax import process_server, stats, tasks
 from gmr_jax.runner import jsonable
 
 # Per-iteration learning-curve entries, in the order they are reported.
 CURVES = (("final_state_mse_lqr", "LQR base layer"), ("final_state_mse_policy", "policy"))
+# The study's figures: (function of this module, file in the study's folder), as plot_all draws them.
+FIGURES = (("plot_learning_curves", "learning_curves.png"), ("plot_paths", "paths.png"),
+           ("plot_robustness", "robustness.png"), ("plot_seed_successes", "seeds.png"))
 
 
 def read_results(path) -> dict:
@@ -229,12 +235,38 @@ def _task(configs) -> tasks.Task:
     return tasks.of(next(iter(configs.values())))
 
 
-def plot_all(out: pathlib.Path, configs, runs) -> None:
-    """The study's figures: learning curves, paths, robustness, per-seed successes."""
-    plot_learning_curves(out / "learning_curves.png", configs, runs)
-    plot_paths(out / "paths.png", configs, runs)
-    plot_robustness(out / "robustness.png", configs, runs)
-    plot_seed_successes(out / "seeds.png", configs, runs)
+FIGURE_WORKERS_MIN_CORES = 8
+"""The host cores from which :func:`figure_workers` draws the figures in processes of their own:
+their imports (matplotlib, while the runs train) would slow a small host's training."""
+
+
+def figure_workers() -> concurrent.futures.ProcessPoolExecutor | None:
+    """Processes that draw the study's figures side by side (matplotlib draws under the GIL,
+    one figure at a time per process), one per figure, started now so that they import
+    matplotlib (:func:`preload_plotting`) while the runs train; None on a host with fewer than
+    :data:`FIGURE_WORKERS_MIN_CORES` cores (:func:`plot_all` then draws them here). Shut it
+    down after :func:`plot_all`."""
+    if (os.cpu_count() or 1) < FIGURE_WORKERS_MIN_CORES:
+        return None
+    process_server.start()  # from this thread, as the runs' processes would (a no-op once it runs)
+    workers = concurrent.futures.ProcessPoolExecutor(len(FIGURES), mp_context=process_server.context(),
+                                                     initializer=preload_plotting)
+    for _ in FIGURES:  # each call while none is idle starts a worker: all of them start now
+        workers.submit(int)
+    return workers
+
+
+def plot_all(out: pathlib.Path, configs, runs, workers: concurrent.futures.Executor | None = None) -> None:
+    """The study's figures (:data:`FIGURES`): learning curves, paths, robustness, per-seed
+    successes; drawn by ``workers`` (:func:`figure_workers`) side by side, else one after the
+    other here. The first figure that fails raises its error here."""
+    jobs = [(getattr(sys.modules[__name__], name), out / file) for name, file in FIGURES]
+    if workers is None:
+        for plot, path in jobs:
+            plot(path, configs, runs)
+        return
+    for future in [workers.submit(plot, path, configs, runs) for plot, path in jobs]:
+        future.result()
 
 
 def plot_seed_successes(path: pathlib.Path, configs, runs) -> None:

@@ -69,8 +69,23 @@ def test_results_summary_and_figures(tmp_path):
     assert text.count("- Learning speed") == 4
     assert again["learning_speed"]["A/gmr"] == {"lqr": [4, 4], "policy": [4, 4], "lag": [0, 0]}  # never below 0.01
     report.plot_all(tmp_path, configs, runs)
-    for name in ("learning_curves.png", "paths.png", "robustness.png", "seeds.png"):
+    names = [name for _, name in report.FIGURES]
+    assert names == ["learning_curves.png", "paths.png", "robustness.png", "seeds.png"]
+    for name in names:
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    # drawn by processes of their own (as on a host with FIGURE_WORKERS_MIN_CORES cores): the same files
+    import concurrent.futures
+    from gmr_jax import process_server
+
+    apart = tmp_path / "apart"
+    apart.mkdir()
+    with concurrent.futures.ProcessPoolExecutor(2, mp_context=process_server.context(),
+                                                initializer=report.preload_plotting) as workers:
+        report.plot_all(apart, configs, runs, workers)
+        with pytest.raises(FileNotFoundError):  # a figure's error is raised here
+            report.plot_all(tmp_path / "missing", configs, runs, workers)
+    for name in names:
+        assert (apart / name).read_bytes() == (tmp_path / name).read_bytes(), name
 
 
 def test_compare_names_the_differing_fields():
