@@ -647,10 +647,12 @@ def run_study(args, t_start: float) -> int:
     for (scenario, algorithm), cfg in args.configs.items():
         print(f"[{scenario} / {algorithm}] {cfg.iterations} iterations, {cfg.num_samples} samples, "
               f"T={cfg.task.T}, {len(seeds)} seed(s)", flush=True)
-    figures = None if args.no_plots else report.figure_workers()
     with (runner.Scheduler(args.compile_jobs, args.devices, iteration_programs=args.iteration_programs,
-                           program_store=store) as scheduler, figures or contextlib.nullcontext()):
+                           program_store=store) as scheduler, contextlib.ExitStack() as stack):
         _stop_on_signals(scheduler)
+        figures = None if args.no_plots else report.figure_workers()
+        if figures is not None:  # on an error too: the figures not yet drawn are dropped
+            stack.callback(figures.shutdown, wait=True, cancel_futures=True)
         plotting = None if args.no_plots or figures else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,

@@ -21,7 +21,7 @@ if __name__ == "__main__":
     # the server that the runs' processes fork from imports JAX while this process does
     from gmr_jax import process_server  # noqa: E402 (imports no JAX)
 
-    process_server.start_where_a_gpu_is()
+    process_server.start_where_a_gpu_is(sys.argv[1:])
 
 from experiments import cli  # noqa: E402
 

@@ -9,13 +9,17 @@ from __future__ import annotations
 import concurrent.futures
 import gzip
 import json
+import multiprocessing
 import os
 import pathlib
+import signal
 import sys
+import threading
+import time
 
 import numpy as np
 
-from gmr_jax import process_server, stats, tasks
+from gmr_jax import process_server, sim, stats, tasks
 from gmr_jax.runner import jsonable
 
 # Per-iteration learning-curve entries, in the order they are reported.
@@ -236,37 +240,65 @@ def _task(configs) -> tasks.Task:
 
 
 FIGURE_WORKERS_MIN_CORES = 8
-"""The host cores from which :func:`figure_workers` draws the figures in processes of their own:
-their imports (matplotlib, while the runs train) would slow a small host's training."""
+"""The host cores (this process's affinity) from which :func:`figure_workers` draws the figures
+in processes of their own: their imports (matplotlib, while the runs train) would slow a small
+host's training."""
+
+
+def _figure_worker_start() -> None:
+    """A figure worker's start: SIGTERM's default action (the server it forks from ignores it),
+    its end as soon as the command that started it has ended (it waits on a queue that tells it
+    nothing of that), matplotlib imported."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        def watch():
+            while parent.is_alive():
+                time.sleep(0.5)
+            os._exit(0)
+        threading.Thread(target=watch, daemon=True).start()
+    preload_plotting()
 
 
 def figure_workers() -> concurrent.futures.ProcessPoolExecutor | None:
-    """Processes that draw the study's figures side by side (matplotlib draws under the GIL,
-    one figure at a time per process), one per figure, started now so that they import
-    matplotlib (:func:`preload_plotting`) while the runs train; None on a host with fewer than
-    :data:`FIGURE_WORKERS_MIN_CORES` cores (:func:`plot_all` then draws them here). Shut it
-    down after :func:`plot_all`."""
-    if (os.cpu_count() or 1) < FIGURE_WORKERS_MIN_CORES:
+    """Processes that draw the study's figures side by side (matplotlib draws under the GIL, so
+    threads would not), one per figure, forked from ``gmr_jax.process_server``'s server in a
+    background thread (so this one never waits for the server's imports) and importing
+    matplotlib while the runs train; None on a host with fewer than
+    :data:`FIGURE_WORKERS_MIN_CORES` cores (:func:`plot_all` then draws the figures here). A
+    Ctrl-C reaches this process only; shut the workers down after :func:`plot_all`."""
+    if sim.host_cores() < FIGURE_WORKERS_MIN_CORES:
         return None
-    process_server.start()  # from this thread, as the runs' processes would (a no-op once it runs)
+    process_server.start()  # from this thread, as for the runs' processes (a no-op once it runs)
     workers = concurrent.futures.ProcessPoolExecutor(len(FIGURES), mp_context=process_server.context(),
-                                                     initializer=preload_plotting)
-    for _ in FIGURES:  # each call while none is idle starts a worker: all of them start now
-        workers.submit(int)
+                                                     initializer=_figure_worker_start)
+    threading.Thread(target=_start_workers, args=(workers,), daemon=True).start()
     return workers
+
+
+def _start_workers(workers: concurrent.futures.ProcessPoolExecutor) -> None:
+    # each call while no worker is idle starts one (and waits until the server can fork it)
+    try:
+        for _ in FIGURES:
+            workers.submit(int)
+    except RuntimeError:  # shut down meanwhile (the study ended early)
+        pass
 
 
 def plot_all(out: pathlib.Path, configs, runs, workers: concurrent.futures.Executor | None = None) -> None:
     """The study's figures (:data:`FIGURES`): learning curves, paths, robustness, per-seed
-    successes; drawn by ``workers`` (:func:`figure_workers`) side by side, else one after the
-    other here. The first figure that fails raises its error here."""
+    successes; drawn by ``workers`` (:func:`figure_workers`) side by side, else, or where a
+    worker has died, one after the other here. The first figure that fails raises its error."""
     jobs = [(getattr(sys.modules[__name__], name), out / file) for name, file in FIGURES]
-    if workers is None:
-        for plot, path in jobs:
-            plot(path, configs, runs)
-        return
-    for future in [workers.submit(plot, path, configs, runs) for plot, path in jobs]:
-        future.result()
+    if workers is not None:
+        try:
+            for future in [workers.submit(plot, path, configs, runs) for plot, path in jobs]:
+                future.result()
+            return
+        except concurrent.futures.BrokenExecutor:
+            pass
+    for plot, path in jobs:
+        plot(path, configs, runs)
 
 
 def plot_seed_successes(path: pathlib.Path, configs, runs) -> None:

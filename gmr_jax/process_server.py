@@ -61,17 +61,22 @@ def gpu_allowed() -> bool:
 
 
 def gpu_present(dev: str = "/dev") -> bool:
-    """Whether JAX may find an NVIDIA GPU here: :func:`gpu_allowed` and a GPU's device file
-    (``nvidia0``, …) exists. Reads no library: it answers before JAX is imported."""
+    """Whether JAX may find an NVIDIA GPU here: :func:`gpu_allowed`, ``CUDA_VISIBLE_DEVICES``
+    not empty or -1, and a GPU's device file (``nvidia0``, …) exists. Reads no library: it
+    answers before JAX is imported."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None and visible.strip() in ("", "-1"):
+        return False
     return gpu_allowed() and any(pathlib.Path(dev).glob("nvidia[0-9]*"))
 
 
-def start_where_a_gpu_is() -> bool:
+def start_where_a_gpu_is(argv: list[str]) -> bool:
     """:func:`start` where :func:`gpu_present` (the machines where the command line trains some
-    runs in processes of their own by default); returns whether it did. For a command's first
-    lines, before it imports JAX: the server's imports then overlap the command's own
-    (``experiments.reach``); where no run asks for a child, the server stays idle."""
-    if not gpu_present():
+    runs in processes of their own by default) and the command's arguments ``argv`` do not ask
+    for its help; returns whether it did. For a command's first lines, before it imports JAX:
+    the server's imports then overlap the command's own (``experiments.reach``); where no run
+    asks for a child, the server stays idle and ends with the command."""
+    if any(a in ("-h", "--help") for a in argv) or not gpu_present():
         return False
     start()
     return True

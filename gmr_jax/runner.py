@@ -399,24 +399,26 @@ class _Layout(NamedTuple):
         return sharding.unpad(tree, self.num)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _seed_keys(seeds: tuple, iterations: int) -> tuple[jax.Array, jax.Array]:
-    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    return jax.vmap(lambda k: mdgps.iteration_keys(k, iterations))(keys)
+@functools.partial(jax.jit, static_argnums=1)
+def _seed_keys(seeds: jax.Array, iterations: int) -> tuple[jax.Array, jax.Array]:
+    return jax.vmap(lambda s: mdgps.iteration_keys(jax.random.PRNGKey(s), iterations))(seeds)
 
 
 def seed_keys(cfg: config.Config, seeds) -> tuple[np.ndarray, np.ndarray]:
     """(init keys [S], iteration keys [S, iterations]) of the seeds, as ``mdgps.train`` uses them,
-    on the host. Derived by one program on the host CPU where JAX has one (the same bits on every
-    platform: threefry is integer arithmetic): a run's first computation, which one-by-one
-    operations on a GPU would compile as several programs before its tracing can start
+    as host arrays. Derived by one program, on the host CPU where JAX has one and the keys are
+    threefry's (the default ``jax_default_prng_impl``: integer arithmetic, the same bits on every
+    platform; other implementations on the default device): a run's first computation, which
+    one-by-one operations on a GPU compiled as several programs before its tracing could start
     (benchmarks/RESULTS.md, thirty-first session)."""
-    try:
-        device = jax.local_devices(backend="cpu")[0]
-    except RuntimeError:  # JAX_PLATFORMS without the host CPU
-        device = jax.local_devices()[0]
+    device = jax.local_devices()[0]
+    if jax.config.jax_default_prng_impl == "threefry2x32":
+        try:
+            device = jax.local_devices(backend="cpu")[0]
+        except RuntimeError:  # JAX_PLATFORMS without the host CPU
+            pass
     with jax.default_device(device):
-        return jax.device_get(_seed_keys(tuple(int(s) for s in seeds), cfg.iterations))
+        return jax.device_get(_seed_keys(jnp.asarray([int(s) for s in seeds]), cfg.iterations))
 
 
 def initial_state(cfg: config.Config, seeds) -> mdgps.TrainState:
@@ -606,13 +608,14 @@ class _PartsStep:
         return mdgps.new_state(carry), self.pool.submit(metrics, dict(carry))
 
     def _call(self, index: int, carry: dict, first, copies: dict) -> dict:
-        """Part ``index`` called with the arrays it reads on its device, once they are complete
-        (``copies``: the copies made so far in this iteration, by (array id, device))."""
+        """Part ``index`` called with the arrays it reads on its device (host arrays put there),
+        once they are complete (``copies``: the copies made so far in this iteration, by (array
+        id, device))."""
         device = self.devices[index]
         leaves, tree = jax.tree_util.tree_flatten((carry, first))
         moved = []
         for i, read in enumerate(self.reads[index]):
-            if read and leaves[i].devices() != {device}:
+            if read and (not isinstance(leaves[i], jax.Array) or leaves[i].devices() != {device}):
                 key = id(leaves[i]), device
                 if key not in copies:
                     copies[key] = (jax.device_put(leaves[i], device), leaves[i])  # the original kept alive

@@ -142,11 +142,11 @@ class Sim:
 
     # -- host stepper for the mujoco backend ----------------------------------------------
     def _host(self):
-        """The C MuJoCo stepper of this plant: a large batch on up to all host cores (``_all_cores``)."""
+        """The C MuJoCo stepper of this plant: a large batch on up to all host cores (``host_cores``)."""
         if "host" not in self._cache:
             with self._lock:
                 if "host" not in self._cache:
-                    self._cache["host"] = _HostStepper(self.model, self.config.substeps, _all_cores())
+                    self._cache["host"] = _HostStepper(self.model, self.config.substeps, host_cores())
         return self._cache["host"]
 
 
@@ -472,7 +472,7 @@ def _host_rollout(s: Sim, policy: types.LinearGaussianPolicy, x0: Array, eps: Ar
         vmap_method="broadcast_all")
 
 
-def _all_cores() -> int:
+def host_cores() -> int:
     """The host cores this process may run on (its CPU affinity, else ``os.cpu_count()``)."""
     try:
         return len(os.sched_getaffinity(0))

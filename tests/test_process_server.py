@@ -17,11 +17,13 @@ def test_the_module_imports_without_jax():
 
 
 def test_the_server_starts_early_only_where_a_gpu_may_be_found(tmp_path, monkeypatch):
-    """``gpu_present``: a GPU's device file and ``JAX_PLATFORMS`` unset or naming CUDA;
-    ``start_where_a_gpu_is`` starts the server exactly then."""
+    """``gpu_present``: a GPU's device file, ``JAX_PLATFORMS`` unset or naming CUDA and
+    ``CUDA_VISIBLE_DEVICES`` not empty or -1; ``start_where_a_gpu_is`` starts the server exactly
+    then, unless the command is asked for its help."""
     started = []
     monkeypatch.setattr(process_server, "start", lambda: started.append(True))
-    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    for name in ("JAX_PLATFORMS", "CUDA_VISIBLE_DEVICES"):
+        monkeypatch.delenv(name, raising=False)
     (tmp_path / "nvidiactl").touch()  # the driver's control file alone: no GPU
     assert not process_server.gpu_present(str(tmp_path))
     (tmp_path / "nvidia0").touch()
@@ -30,7 +32,13 @@ def test_the_server_starts_early_only_where_a_gpu_may_be_found(tmp_path, monkeyp
         monkeypatch.setenv("JAX_PLATFORMS", platforms)
         assert process_server.gpu_allowed() is allowed
         assert process_server.gpu_present(str(tmp_path)) is allowed
+    monkeypatch.delenv("JAX_PLATFORMS")
+    for visible, present in (("", False), ("-1", False), ("0", True), ("1,0", True)):
+        monkeypatch.setenv("CUDA_VISIBLE_DEVICES", visible)
+        assert process_server.gpu_present(str(tmp_path)) is present
     monkeypatch.setattr(process_server, "gpu_present", lambda: False)
-    assert not process_server.start_where_a_gpu_is() and started == []
+    assert not process_server.start_where_a_gpu_is([]) and started == []
     monkeypatch.setattr(process_server, "gpu_present", lambda: True)
-    assert process_server.start_where_a_gpu_is() and started == [True]
+    for argv in (["--help"], ["--seeds", "2", "-h"]):
+        assert not process_server.start_where_a_gpu_is(argv) and started == []
+    assert process_server.start_where_a_gpu_is(["--seeds", "2"]) and started == [True]

@@ -2,6 +2,7 @@
 summary's robustness table against the paper, the learning speed, and the figures."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -38,7 +39,7 @@ def fake_run(M: int, successes, policy=True, seed=0):
     return run
 
 
-def test_results_summary_and_figures(tmp_path):
+def test_results_summary_and_figures(tmp_path, monkeypatch):
     configs = {(s, a): config.reach(s, a, iterations=ITERS, task__T=T) for s in ("A", "AB") for a in ("gmr", "mdgps")}
     runs = {("A", "gmr"): fake_run(1, [50, 27]), ("A", "mdgps"): fake_run(1, [0, 2], seed=1),
             ("AB", "gmr"): fake_run(2, [50, 50], seed=2), ("AB", "mdgps"): fake_run(2, [3, 4], seed=3)}
@@ -73,19 +74,60 @@ def test_results_summary_and_figures(tmp_path):
     assert names == ["learning_curves.png", "paths.png", "robustness.png", "seeds.png"]
     for name in names:
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
-    # drawn by processes of their own (as on a host with FIGURE_WORKERS_MIN_CORES cores): the same files
+    # drawn by processes of their own, as on a host with FIGURE_WORKERS_MIN_CORES cores: the same files
     import concurrent.futures
-    from gmr_jax import process_server
 
-    apart = tmp_path / "apart"
-    apart.mkdir()
-    with concurrent.futures.ProcessPoolExecutor(2, mp_context=process_server.context(),
-                                                initializer=report.preload_plotting) as workers:
-        report.plot_all(apart, configs, runs, workers)
+    monkeypatch.setattr(report.sim, "host_cores", lambda: report.FIGURE_WORKERS_MIN_CORES - 1)
+    assert report.figure_workers() is None
+    monkeypatch.setattr(report.sim, "host_cores", lambda: report.FIGURE_WORKERS_MIN_CORES)
+    workers = report.figure_workers()
+    try:
+        for where in ("apart", "broken"):
+            (tmp_path / where).mkdir()
+        report.plot_all(tmp_path / "apart", configs, runs, workers)
         with pytest.raises(FileNotFoundError):  # a figure's error is raised here
             report.plot_all(tmp_path / "missing", configs, runs, workers)
+    finally:
+        workers.shutdown()
+
+    class Broken(concurrent.futures.Executor):  # a worker has died
+        def submit(self, fn, /, *args, **kwargs):
+            raise concurrent.futures.process.BrokenProcessPool("a worker died")
+    report.plot_all(tmp_path / "broken", configs, runs, Broken())  # drawn here instead
     for name in names:
-        assert (apart / name).read_bytes() == (tmp_path / name).read_bytes(), name
+        for where in ("apart", "broken"):
+            assert (tmp_path / where / name).read_bytes() == (tmp_path / name).read_bytes(), (where, name)
+
+
+def test_figure_workers_end_with_the_command_that_started_them(tmp_path):
+    """A command that dies without shutting its figure workers down (SIGKILL, a crash) takes
+    them with it: they watch it, although the server they fork from ignores SIGTERM."""
+    import subprocess
+    import sys
+    import time
+
+    code = ("import os; from experiments import report; report.sim.host_cores = lambda: 8; "
+            "w = report.figure_workers(); [w.submit(int).result() for _ in range(8)]; "
+            "print(' '.join(str(p) for p in w._processes), flush=True); os._exit(0)")
+    with open(tmp_path / "pids", "w") as out:  # a file: a pipe would wait for the workers too
+        subprocess.run([sys.executable, "-c", code], stdout=out, check=True, timeout=300)
+    pids = [int(p) for p in (tmp_path / "pids").read_text().split()]
+    assert len(pids) == len(report.FIGURES)
+
+    def alive(pid):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        try:
+            with open(f"/proc/{pid}/stat") as f:  # a zombie has ended
+                return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+    deadline = time.monotonic() + 30
+    while any(alive(p) for p in pids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [p for p in pids if alive(p)]
 
 
 def test_compare_names_the_differing_fields():
