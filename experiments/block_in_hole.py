@@ -21,8 +21,9 @@ import sys  # noqa: E402
 
 if __name__ == "__main__":
     # the server that the runs' processes fork from imports JAX while this process does
-    from gmr_jax import process_server  # noqa: E402 (imports no JAX)
+    from gmr_jax import process_server, timeline  # noqa: E402 (import no JAX)
 
+    timeline.mark("command start", at=time.time() - (time.perf_counter() - _T_START))
     process_server.start_where_a_gpu_is(sys.argv[1:])
 
 from experiments import cli  # noqa: E402

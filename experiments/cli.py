@@ -22,7 +22,7 @@ import time
 import traceback
 
 from experiments import xla_flags
-from gmr_jax import checkpoint, config, mps, policies, process_server, runner, sharding, sstep, tasks
+from gmr_jax import checkpoint, config, mps, policies, process_server, runner, sharding, sstep, tasks, timeline
 from gmr_jax.program_store import ProgramStore
 from gmr_jax.sim import MJCFError
 
@@ -655,20 +655,25 @@ def run_study(args, t_start: float) -> int:
             stack.callback(figures.shutdown, wait=True, cancel_futures=True)
         plotting = None if args.no_plots or figures else scheduler.pool.submit(report.preload_plotting)
         t_runs = time.perf_counter()
+        timeline.mark("runs start")
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
                               stability=not args.no_stability, platforms=args.platforms,
                               processes=process_runs(args), niceness=args.niceness)
         total = time.perf_counter() - t_runs
+        timeline.mark("runs done")
         if not args.no_plots:
             if plotting is not None:
                 plotting.result()
             report.plot_all(out, args.configs, runs, figures)
+            timeline.mark("figures drawn")
     results = report.write_results(out, args.configs, runs, seeds, device, total,
                                    command_s=time.perf_counter() - t_start, start_s=t_runs - t_start)
+    timeline.mark("results written")
     report.write_summary(out / "summary.md", args.configs, runs, seeds, device, total, results)
     print((out / "summary.md").read_text())
     write_pictures(args, out)
+    timeline.mark("command end")
     return 0
 
 
@@ -698,6 +703,7 @@ def main(task_name: str, argv=None, description: str | None = None, t_start: flo
     t_start = time.perf_counter() if t_start is None else t_start
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(task_name, argv, description, start_daemons=True)
+    timeline.mark("arguments read")
     try:
         return _main(task_name, args, argv, t_start)
     finally:

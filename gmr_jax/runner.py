@@ -54,6 +54,7 @@ from gmr_jax import process_server
 from gmr_jax import program_store as program_store_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax import stability as stability_lib
+from gmr_jax import timeline
 
 ProgressFn = Callable[[dict], None]
 
@@ -822,6 +823,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
     try:
+        timeline.mark(f"run entry {label}")
         layout = _Layout(scheduler.mesh_for(platform), len(seeds))  # an unknown platform: before any write
         if not resume:
             check_fresh([run_dir])
@@ -831,6 +833,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         k_init, it_keys = (layout.device(k) for k in seed_keys(cfg, seeds))
         meta = jsonable({"config": config.to_dict(cfg), "seeds": list(seeds)})
         t0 = time.perf_counter()
+        timeline.mark(f"run clock {label}")
         timer = Timer()
         stop = cfg.iterations if stop_after is None else min(stop_after, cfg.iterations)
         state, history, step, robustness = _prepare(cfg, seeds, layout, k_init, it_keys, ckpt_dir, resume, stop,
@@ -853,6 +856,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
                 params = jax.device_get(layout.real(state.policy.params))
                 result["stability"] = stability_lib.measure(cfg, params, result["robustness"]["X"])._asdict()
     result["wall_s"] = time.perf_counter() - t0
+    timeline.mark(f"run end {label}")
     result["timing"] = dict(timer)
     return result
 
@@ -1091,7 +1095,8 @@ def _child_run(job: dict, events, stop_event) -> None:
     or a batch system) and the parent's end are stop requests too: the child finishes its
     iteration in flight like the runs in the parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.environ.update(job["environment"])  # read when JAX starts its backends
+    os.environ.update(job["environment"])
+    timeline.mark(f"process entry {job['label']}")  # read when JAX starts its backends
     if "JAX_PLATFORMS" in job["environment"]:  # read when JAX was imported (in the server)
         jax.config.update("jax_platforms", job["environment"]["JAX_PLATFORMS"])
     for name, value in job["jax_config"].items():
@@ -1220,7 +1225,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
            "stability": stability, "devices": devices, "niceness": niceness,
-           "environment": child_environment(platform, default_platform),
+           "environment": {**child_environment(platform, default_platform), **timeline.environment()},
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "iteration_programs": in_process_iteration_programs(
                "auto" if scheduler is None else scheduler.iteration_programs, cfg, platform or default_platform),
@@ -1228,7 +1233,9 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
            else str(scheduler.program_store.directory),
            "jax_config": {name: getattr(jax.config, name) for name in _CHILD_JAX_CONFIG}}
     child = ctx.Process(target=_child_run, args=(job, events, stop_event), name=f"gmr-jax {label}", daemon=True)
+    timeline.mark(f"process asked {label}")
     child.start()
+    timeline.mark(f"process started {label}")
     finished = False
     try:
         while True:
@@ -1245,6 +1252,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                 if item.error is not None:
                     raise item.error
                 finished = True
+                timeline.mark(f"result received {label}")
                 return item.result
             if progress_fn is not None:
                 progress_fn(item)
@@ -1356,3 +1364,5 @@ def stopped_study_error(runs: dict) -> BaseException:
         return failed
     return Interrupted("; ".join(parts))
 
+
+timeline.mark("runner imported")  # in the process server: its imports are done

@@ -32,7 +32,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from experiments import cli, diagnose, reach
-from gmr_jax import checkpoint, process_server, runner, sim
+from gmr_jax import checkpoint, process_server, runner, sim, timeline
 from test_mdgps import small
 
 SEEDS = [0, 1]
@@ -236,9 +236,16 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     # there the scheduler's "auto" compiles the policy's iteration in parts (here: one program),
     # which differ by round-off (test_runner.py's parts test, whose tolerance this is)
     assert runner.in_process_iteration_programs("auto", cfg) == "parts"
+    monkeypatch.setenv(timeline.VARIABLE, str(tmp_path / "timeline"))  # passed to the child
     runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=scheduler,
                           progress_fn=progress, processes=[("A", "mdgps")],
                           platforms={("A", "mdgps"): "cpu"}, niceness={("A", "mdgps"): 3})
+    monkeypatch.delenv(timeline.VARIABLE)
+    marks = [(pid == os.getpid(), label) for _, pid, label in timeline.read(tmp_path / "timeline")
+             if label != "runner imported"]  # the server's, where it started in this test
+    assert marks == [(True, "process asked A/mdgps"), (True, "process started A/mdgps"),
+                     (False, "process entry A/mdgps"), (False, "run entry A/mdgps"), (False, "run clock A/mdgps"),
+                     (False, "run end A/mdgps"), (True, "result received A/mdgps")]
     assert nice == [min(mine + 3, 19)]
     run = runs[("A", "mdgps")]
     for got, want in ((run["history"], result["history"]), (run["robustness"], result["robustness"])):
