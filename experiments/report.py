@@ -13,7 +13,6 @@ import multiprocessing
 import os
 import pathlib
 import signal
-import sys
 import threading
 import time
 
@@ -24,9 +23,6 @@ from gmr_jax.runner import jsonable
 
 # Per-iteration learning-curve entries, in the order they are reported.
 CURVES = (("final_state_mse_lqr", "LQR base layer"), ("final_state_mse_policy", "policy"))
-# The study's figures: (function of this module, file in the study's folder), as plot_all draws them.
-FIGURES = (("plot_learning_curves", "learning_curves.png"), ("plot_paths", "paths.png"),
-           ("plot_robustness", "robustness.png"), ("plot_seed_successes", "seeds.png"))
 
 
 def read_results(path) -> dict:
@@ -289,7 +285,7 @@ def plot_all(out: pathlib.Path, configs, runs, workers: concurrent.futures.Execu
     """The study's figures (:data:`FIGURES`): learning curves, paths, robustness, per-seed
     successes; drawn by ``workers`` (:func:`figure_workers`) side by side, else, or where a
     worker has died, one after the other here. The first figure that fails raises its error."""
-    jobs = [(getattr(sys.modules[__name__], name), out / file) for name, file in FIGURES]
+    jobs = [(plot, out / file) for plot, file in FIGURES]
     if workers is not None:
         try:
             for future in [workers.submit(plot, path, configs, runs) for plot, path in jobs]:
@@ -532,3 +528,8 @@ def plot_robustness(path: pathlib.Path, configs, runs) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+# The study's figures as plot_all draws them: (function, file in the study's folder).
+FIGURES = ((plot_learning_curves, "learning_curves.png"), (plot_paths, "paths.png"),
+           (plot_robustness, "robustness.png"), (plot_seed_successes, "seeds.png"))
