@@ -242,7 +242,11 @@ def start_mps(args) -> str | None:
     (``--gpu-runs-in-process`` not none), a GPU may be used (``JAX_PLATFORMS``) and the control
     program exists; a daemon that cannot start is skipped with one line on stderr. on: wherever
     a GPU may be used; raises ``mps.Unavailable`` where none runs or can start. Where every GPU
-    run will train in a process of its own, this process keeps no GPU memory pool."""
+    run will train in a process of its own, this process keeps no GPU memory pool.
+    A daemon started here is still being checked by its client (``mps.launch``) when this
+    returns, so that the client's CUDA start overlaps this process's own backend;
+    :func:`_resolved` waits for it (:func:`_mps_checked`). The GPUs are counted here by CUDA's
+    driver (``mps.device_count``)."""
     args.mps_daemon = None
     if args.mps == "off":
         return None
@@ -252,7 +256,7 @@ def start_mps(args) -> str | None:
         return None
     if args.mps == "auto" and (args.gpu_runs_in_process == "none" or not shares_one_gpu(args, 1)):
         return None
-    daemon = None
+    starting, gpus = None, 1
     if mps.running_elsewhere():
         state = "running"
     else:
@@ -260,30 +264,54 @@ def start_mps(args) -> str | None:
         if control is None and args.mps == "auto":
             return None
         try:
-            daemon = mps.start(control)
+            starting = mps.launch(control)
         except mps.Unavailable as err:
             if args.mps == "on":
                 raise
-            print(f"note: no CUDA MPS ({err}); runs on one GPU take turns on it (--mps off hides this)",
-                  file=sys.stderr)
+            _no_mps_note(err)
             return None
-        if args.mps == "auto" and not shares_one_gpu(args, daemon.devices):
-            mps.stop(daemon)  # one seed on several GPUs: the runs do not share one
+        gpus = mps.device_count() or 1  # none: JAX finds no GPU either, and _resolved stops the daemon
+        if args.mps == "auto" and not shares_one_gpu(args, gpus):
+            mps.abandon(starting)  # one seed on several GPUs: the runs do not share one
             return None
         state = "started"
-    apart = args.gpu_runs_in_process == "all" or (args.gpu_runs_in_process == "auto" and shares_one_gpu(
-        args, daemon.devices if daemon else 1))
+    apart = args.gpu_runs_in_process == "all" or (args.gpu_runs_in_process == "auto" and shares_one_gpu(args, gpus))
     if apart and "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ:
-        # every GPU run trains in a process of its own: this one computes nothing there
+        # every GPU run trains in a process of its own: this one computes nothing there (and
+        # where the daemon's client then fails, this process allocates as it needs)
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
-    args.mps_daemon = daemon
+    args.mps_daemon = starting
     return state
 
 
+def _no_mps_note(err: Exception) -> None:
+    print(f"note: no CUDA MPS ({err}); runs on one GPU take turns on it (--mps off hides this)", file=sys.stderr)
+
+
+def _mps_checked(args) -> str | None:
+    """``args.mps_state`` once the client of a daemon that :func:`start_mps` started has
+    finished: "started" (``args.mps_daemon`` the running ``mps.Daemon``), or None where it
+    failed under ``--mps auto`` (one line on stderr); raises ``mps.Unavailable`` under on."""
+    if not isinstance(args.mps_daemon, mps.Starting):
+        return args.mps_state
+    starting, args.mps_daemon = args.mps_daemon, None
+    try:
+        args.mps_daemon = mps.finish(starting)
+    except mps.Unavailable as err:
+        if args.mps == "on":
+            raise
+        _no_mps_note(err)
+        return None
+    timeline.mark("MPS daemon ready")
+    return args.mps_state
+
+
 def stop_mps(args) -> None:
-    """Stop the private MPS daemon that :func:`start_mps` started, if any."""
+    """Stop the private MPS daemon that :func:`start_mps` started (or is still checking), if any."""
     daemon, args.mps_daemon = getattr(args, "mps_daemon", None), None
-    if daemon is not None:
+    if isinstance(daemon, mps.Starting):
+        mps.abandon(daemon)
+    elif daemon is not None:
         mps.stop(daemon)
 
 
@@ -443,6 +471,10 @@ def _resolved(p: argparse.ArgumentParser, args, task: tasks.Task) -> argparse.Na
             args.mps_state = None
             if args.mps == "on":
                 p.error("--mps on: JAX has no GPU backend here; use --mps auto or off")
+        try:
+            args.mps_state = _mps_checked(args)
+        except mps.Unavailable as err:
+            p.error(f"--mps on: {err}; use --mps auto or off")
         if args.mps_state == "started":  # started outside the daemon: only the runs' processes use it
             mps.activate(args.mps_daemon)
         overrides = {**resolve_adam_entries(args), **args.overrides}

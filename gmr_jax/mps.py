@@ -19,6 +19,7 @@ the GPU's settings (compute mode, MIG).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import pathlib
 import shutil
@@ -162,13 +163,19 @@ def stop_orphans(control: str, tmp: str | None = None) -> list[pathlib.Path]:
     return stopped
 
 
-def start(control: str | None = None, tmp: str | None = None, probe_timeout: float = 60.0,
-          probe: str | None = None) -> Daemon:
-    """Start a private MPS daemon and check it with a client in a process of its own (which also
-    starts the MPS server, so the processes that use it do not wait for it). Raises
-    :class:`Unavailable` (the daemon stopped again). Nothing is a client until :func:`activate`.
-    ``probe``: the client's Python code (default: the CUDA driver's, which prints the device
-    count); ``tmp``: where the daemon's directory goes (default: the temporary directory)."""
+class Starting(NamedTuple):
+    """A private daemon started by :func:`launch` whose client (``client``, the probe) may still
+    be running: :func:`finish` waits for it, :func:`abandon` stops both."""
+
+    directory: pathlib.Path
+    control: str
+    client: subprocess.Popen
+
+
+def launch(control: str | None = None, tmp: str | None = None, probe: str | None = None) -> Starting:
+    """The first half of :func:`start`: the daemon, and its client started but not waited for,
+    so that this process can start its own CUDA backend meanwhile. Raises :class:`Unavailable`
+    (the daemon stopped again) where the control program is missing or fails."""
     control = control or find_control()
     if control is None:
         raise Unavailable(f"{CONTROL} is not on PATH")
@@ -183,20 +190,67 @@ def start(control: str | None = None, tmp: str | None = None, probe_timeout: flo
         if started.returncode != 0:
             raise Unavailable(f"{CONTROL} -d exited with {started.returncode}: "
                               f"{_last_line(started.stderr or started.stdout)}")
-        try:
-            client = subprocess.run([sys.executable, "-c", probe or _PROBE], env=env, capture_output=True,
-                                    timeout=probe_timeout, check=False)
-        except subprocess.TimeoutExpired:
-            raise Unavailable(f"a CUDA client of the MPS daemon did not start within {probe_timeout:g} s") from None
-        if client.returncode != 0:
-            raise Unavailable(f"a CUDA client of the MPS daemon failed (exit {client.returncode}): "
-                              f"{_last_line(client.stderr)}")
-        return Daemon(directory, control, int(client.stdout.decode().split()[-1]))
-    except BaseException as err:  # Ctrl-C too: no daemon (and GPU context) left behind
+        client = subprocess.Popen([sys.executable, "-c", probe or _PROBE], env=env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE)
+        return Starting(directory, control, client)
+    except BaseException as err:  # Ctrl-C too: no daemon left behind
         _quit(control, directory)
-        if isinstance(err, (OSError, subprocess.SubprocessError, ValueError, IndexError)):
+        if isinstance(err, (OSError, subprocess.SubprocessError)):
             raise Unavailable(f"{CONTROL}: {type(err).__name__}: {err}") from err
         raise
+
+
+def finish(starting: Starting, timeout: float = 60.0) -> Daemon:
+    """Wait for the client of :func:`launch` (at most ``timeout`` seconds) and return the
+    running daemon; raises :class:`Unavailable` (the daemon stopped again) where it failed."""
+    try:
+        try:
+            out, err = starting.client.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            raise Unavailable(f"a CUDA client of the MPS daemon did not start within {timeout:g} s") from None
+        if starting.client.returncode != 0:
+            raise Unavailable(f"a CUDA client of the MPS daemon failed (exit {starting.client.returncode}): "
+                              f"{_last_line(err)}")
+        return Daemon(starting.directory, starting.control, int(out.decode().split()[-1]))
+    except BaseException as error:  # Ctrl-C too: no daemon (and GPU context) left behind
+        abandon(starting)
+        if isinstance(error, (ValueError, IndexError)):
+            raise Unavailable(f"{CONTROL}: the client printed no device count: {type(error).__name__}: "
+                              f"{error}") from error
+        raise
+
+
+def abandon(starting: Starting) -> None:
+    """Stop the client of :func:`launch` if it still runs, then the daemon."""
+    if starting.client.poll() is None:
+        starting.client.kill()
+    starting.client.communicate()
+    _quit(starting.control, starting.directory)
+
+
+def start(control: str | None = None, tmp: str | None = None, probe_timeout: float = 60.0,
+          probe: str | None = None) -> Daemon:
+    """Start a private MPS daemon and check it with a client in a process of its own (which also
+    starts the MPS server, so the processes that use it do not wait for it): :func:`launch` then
+    :func:`finish`. Raises :class:`Unavailable` (the daemon stopped again). Nothing is a client
+    until :func:`activate`. ``probe``: the client's Python code (default: the CUDA driver's,
+    which prints the device count); ``tmp``: where the daemon's directory goes (default: the
+    temporary directory)."""
+    return finish(launch(control, tmp, probe), probe_timeout)
+
+
+def device_count() -> int | None:
+    """The number of GPUs that CUDA's driver shows this process (``cuInit``, then
+    ``cuDeviceGetCount``: no context, so this process is no MPS client for it; JAX's backend
+    would start the driver anyway), or None where the driver or a device is missing."""
+    try:
+        cuda = ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return None
+    count = ctypes.c_int()
+    if cuda.cuInit(0) or cuda.cuDeviceGetCount(ctypes.byref(count)):
+        return None
+    return count.value
 
 
 def _last_line(output: bytes) -> str:

@@ -78,6 +78,31 @@ def test_a_daemon_whose_client_fails_is_stopped_and_named_in_one_line(tmp_path, 
         mps.start(tmp=str(tmp_path))
 
 
+def test_launch_returns_while_the_client_runs_finish_waits_and_abandon_stops_both(tmp_path):
+    """launch: the daemon runs and its client is still running when it returns (the client here
+    waits for a file that only this process writes afterwards); finish waits for the client and
+    reads its device count; abandon stops a client that still runs and then the daemon."""
+    control, log = fake_control(tmp_path)
+    go = tmp_path / "go"
+    waiting = (f"import os, sys, time\nend = time.monotonic() + 30\nwhile not os.path.exists({str(go)!r}):\n"
+               "    time.sleep(0.01)\n    if time.monotonic() > end: sys.exit('no go')\nprint(2)")
+    starting = mps.launch(control, tmp=str(tmp_path), probe=waiting)
+    assert starting.client.poll() is None and calls(log) == [[str(starting.directory / "pipe"), "-d"]]
+    go.touch()
+    daemon = mps.finish(starting)
+    assert daemon.devices == 2 and daemon.directory == starting.directory
+    mps.stop(daemon)
+    go.unlink()
+    starting = mps.launch(control, tmp=str(tmp_path), probe=waiting)
+    mps.abandon(starting)
+    assert starting.client.returncode is not None and starting.client.returncode != 0
+    assert calls(log)[-1] == [str(starting.directory / "pipe"), "quit"] and not starting.directory.exists()
+    silent = mps.launch(control, tmp=str(tmp_path), probe="pass")
+    with pytest.raises(mps.Unavailable, match="printed no device count"):
+        mps.finish(silent)
+    assert not silent.directory.exists()
+
+
 def test_start_stops_the_daemons_of_commands_that_died(tmp_path):
     """A daemon left by a command that was killed (its owner's pid gone) is stopped and its
     directory removed by the next start; a live owner's daemon is left alone."""
@@ -187,6 +212,49 @@ def test_the_command_starts_mps_where_runs_share_one_gpu(tmp_path, monkeypatch, 
         "runs on one GPU take turns on it (--mps off hides this)")
     refused(["--mps", "on"], "error: --mps on: a CUDA client of the MPS daemon failed (exit 1): "
                              "cuInit: CUDA_ERROR_NO_DEVICE; use --mps auto or off")
+    assert not list(tmp_path.glob("gmr-jax-mps-*"))
+
+
+def test_the_daemons_client_runs_while_the_command_starts_its_backend(tmp_path, monkeypatch):
+    """The command starts its own CUDA backend while the daemon's client runs (the client here
+    finishes only once the stand-in backend has started: a command that waited for it first
+    would find no MPS); the GPUs are counted by the driver in this process, and under auto a
+    count of two stops the daemon again (the runs do not share one GPU) and leaves this
+    process's GPU pool alone."""
+    import jax
+
+    control, log = fake_control(tmp_path)
+    monkeypatch.setenv("PATH", f"{pathlib.Path(control).parent}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr("tempfile.tempdir", None)
+    for name in (mps.PIPE_VARIABLE, mps.LOG_VARIABLE, "XLA_PYTHON_CLIENT_PREALLOCATE", "JAX_PLATFORMS"):
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
+    backend = tmp_path / "backend started"
+    monkeypatch.setattr(mps, "_PROBE", f"import os, sys, time\nend = time.monotonic() + 30\n"
+                        f"while not os.path.exists({str(backend)!r}):\n    time.sleep(0.01)\n"
+                        "    if time.monotonic() > end: sys.exit('the backend never started')\nprint(1)")
+
+    def default_backend():
+        backend.touch()
+        return "gpu"
+
+    monkeypatch.setattr(jax, "default_backend", default_backend)
+    monkeypatch.setattr(jax, "local_devices", lambda *a, **k: [object()])
+    monkeypatch.setattr(mps, "device_count", lambda: 1)
+    args = cli.parse_args("reach", ["--backend", "mujoco"], start_daemons=True)
+    try:
+        assert args.mps_state == "started" and isinstance(args.mps_daemon, mps.Daemon)
+        assert os.environ[mps.PIPE_VARIABLE] == str(args.mps_daemon.directory / "pipe")
+        assert os.environ.pop("XLA_PYTHON_CLIENT_PREALLOCATE") == "false"
+    finally:
+        cli.stop_mps(args)
+    assert [c[-1] for c in calls(log)] == ["-d", "quit"]
+    monkeypatch.setattr(mps, "device_count", lambda: 2)
+    args = cli.parse_args("reach", ["--backend", "mujoco"], start_daemons=True)
+    assert args.mps_state is None and args.mps_daemon is None and args.gpu_processes == [("A", "gmr")]
+    assert "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ
+    assert [c[-1] for c in calls(log)] == ["-d", "quit", "-d", "quit"]
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
 
 
