@@ -97,6 +97,11 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest intact checkpoints in --out (same settings; a "
                         "larger --iterations extends finished runs)")
+    p.add_argument("--checkpoint-every", type=_positive_int, default=1, metavar="N",
+                   help="write the runs' checkpoints after every N-th iteration and the last (a stop "
+                        "or an error writes the last finished one too; default: %(default)s). Many "
+                        "seeds' checkpoints are large (about 1.6 MB per seed for GMR on A,B) and "
+                        "writing them slows the iterations")
     add_precision_argument(p)
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--video", action="store_true",
@@ -292,7 +297,7 @@ def _mps_checked(args) -> str | None:
     """``args.mps_state`` once the client of a daemon that :func:`start_mps` started has
     finished: "started" (``args.mps_daemon`` the running ``mps.Daemon``), or None where it
     failed under ``--mps auto`` (one line on stderr); raises ``mps.Unavailable`` under on."""
-    if not isinstance(args.mps_daemon, mps.Starting):
+    if not isinstance(getattr(args, "mps_daemon", None), mps.Starting):
         return args.mps_state
     starting, args.mps_daemon = args.mps_daemon, None
     try:
@@ -649,6 +654,7 @@ def run_study(args, t_start: float) -> int:
         "command": " ".join([f"python -m experiments.{args.task.name}"] + list(args.argv)),
         "seeds": seeds, "device": device, "precision": args.precision,
         "compilation_cache": args.compilation_cache, "compile_jobs": args.compile_jobs,
+        "checkpoint_every": args.checkpoint_every,
         "program_store": None if store is None else str(store.directory),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
         "compiler_options": sharding.compiler_options(sharding.seeds_per_device(args.seeds, len(used))),
@@ -691,7 +697,8 @@ def run_study(args, t_start: float) -> int:
         runs = runner.run_all(args.configs, seeds, out, resume=args.resume, jobs=args.jobs,
                               scheduler=scheduler, progress_fn=progress_printer(len(args.configs) > 1),
                               stability=not args.no_stability, platforms=args.platforms,
-                              processes=process_runs(args), niceness=args.niceness)
+                              processes=process_runs(args), niceness=args.niceness,
+                              checkpoint_every=args.checkpoint_every)
         total = time.perf_counter() - t_runs
         timeline.mark("runs done")
         if not args.no_plots:

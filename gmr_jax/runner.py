@@ -777,11 +777,19 @@ def check_fresh(run_dirs) -> None:
                           "(--resume), or choose another output folder")
 
 
+def check_checkpoint_every(checkpoint_every) -> None:
+    """Raises ValueError unless ``checkpoint_every`` is a positive integer."""
+    if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every: {checkpoint_every!r} is not a positive integer (1: after every "
+                         "iteration)")
+
+
 def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after: int | None = None,
         progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
         ticket: int | None = None, label: str = "", stability: bool = True,
-        platform: str | None = None) -> dict:
-    """Train ``cfg`` for ``seeds`` in parallel into ``run_dir``; checkpoint after every iteration.
+        platform: str | None = None, checkpoint_every: int = 1) -> dict:
+    """Train ``cfg`` for ``seeds`` in parallel into ``run_dir``; checkpoint after every iteration
+    (or every ``checkpoint_every``-th).
 
     Args:
       cfg: the run's configuration.
@@ -800,6 +808,11 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
       platform: where the run computes: None for the scheduler's devices, or another platform
         of this process, e.g. "cpu" for the host (``Scheduler.mesh_for``). Its programs are
         traced and compiled for that platform (the S-step's form, compiler options).
+      checkpoint_every: write the checkpoint of every n-th iteration and of the last one (a stop
+        request or an error writes the last finished iteration's too); the others are not kept,
+        so ``resume`` continues from the newest written. A many-seed run's checkpoints are
+        large (about 1.6 MB per seed for GMR on A,B) and their writes slow its iterations
+        (benchmarks/RESULTS.md, thirty-second session).
     Returns:
       dict with ``history`` (stacked metrics, leading axes [iteration, seed, ...]),
       ``iteration_s`` (seconds from the first call, or from the last iteration's metrics, to each
@@ -815,10 +828,12 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         names it. Interrupted: the scheduler's stop was requested (checkpoint written).
       checkpoint.CheckpointError: a checkpoint cannot be written or belongs to other settings.
     """
+    check_checkpoint_every(checkpoint_every)
     if scheduler is None:
         with Scheduler() as own:
             return run(cfg, seeds, run_dir, resume=resume, stop_after=stop_after, progress_fn=progress_fn,
-                       scheduler=own, ticket=ticket, label=label, stability=stability, platform=platform)
+                       scheduler=own, ticket=ticket, label=label, stability=stability, platform=platform,
+                       checkpoint_every=checkpoint_every)
     report = (lambda text: progress_fn({"run": label, "message": text})) if progress_fn else (lambda text: None)
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
@@ -844,7 +859,7 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
     if step is not None:  # kept rollouts of an earlier, shorter run would outlive its policy
         (run_dir / ROLLOUTS_FILE).unlink(missing_ok=True)
     state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout,
-                                              timer, scheduler, progress_fn, label, t0)
+                                              timer, scheduler, progress_fn, label, t0, checkpoint_every)
     timer["iterations_s"] = float(np.sum(iteration_s))
     stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
     result = {"history": stacked, "iteration_s": iteration_s}
@@ -972,7 +987,7 @@ def _wait_quietly(*work) -> None:
 
 
 def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout: _Layout, timer, scheduler,
-                progress_fn, label, t0):
+                progress_fn, label, t0, checkpoint_every: int = 1):
     """Iterations ``len(history) … stop − 1``.
 
     An asynchronous step (``_PartsStep.asynchronous``: a split run's, whose host work runs in
@@ -987,13 +1002,15 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
     iteration called before the failure was known runs that seed from its failed state; its part
     is replaced (the seeds are independent), and later iterations run it from its kept state.
 
-    Each iteration's checkpoint is written by a thread of the scheduler's loop pool while the loop
-    goes on, one at a time, in order; a failed write raises at the next one or at the end, and no
-    later checkpoint is written. A stop request lets the iteration under way finish and be
-    checkpointed. An exception still writes the last finished iteration's checkpoint (a failed
-    write then becomes a note of that exception), then waits for the iteration under way."""
+    The checkpoint of every ``checkpoint_every``-th iteration and of iteration ``stop`` is written
+    by a thread of the scheduler's loop pool while the loop goes on, one at a time, in order; a
+    failed write raises at the next one or at the end, and no later checkpoint is written. A stop
+    request lets the iteration under way finish and be checkpointed. An exception still writes
+    the last finished iteration's checkpoint (a failed write then becomes a note of that
+    exception), then waits for the iteration under way."""
     ahead_ok = getattr(step, "asynchronous", False)
     iteration_s, pending, ahead, writing, error, prefetched = [], None, None, None, None, {}
+    finished, submitted = None, len(history)  # the last finished iteration's (step, state, history); written step
     keys = {it: it_keys[:, it] for it in range(len(history), stop)}  # one array each: prefetches match by identity
 
     def save(done: int, st, hist):
@@ -1028,8 +1045,9 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
                 else np.zeros(layout.num, bool)
             if ahead_ok and it + 1 < stop and not scheduler.stop.is_set():
                 ahead = call(it + 1, _kept(failed, new_state, state, layout) if failed.any() else new_state)
-            if pending is not None:  # cleared first: a failed write is not tried again below
+            if pending is not None:  # cleared (and counted) first: after a failed write it is not tried below
                 job, pending = pending, None
+                submitted = job[0]
                 written()
                 writing = scheduler.loop_pool.submit(save, *job)
             metrics = _host(layout.real(_resolved(metrics)))
@@ -1048,7 +1066,9 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
             metrics["seed_failed"] = frozen
             state = new_state
             history.append(metrics)
-            pending = (it + 1, state, list(history))
+            finished = (it + 1, state, list(history))
+            if (it + 1) % checkpoint_every == 0 or it + 1 == stop:
+                pending = finished
             if progress_fn is not None:
                 progress_fn({"run": label, "iteration": it + 1, "iterations": cfg.iterations,
                              "metrics": metrics})
@@ -1058,8 +1078,9 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
     finally:
         try:
             written()
-            if pending is not None:
-                save(*pending)
+            if finished is not None and finished[0] != submitted:  # the scheduled one, or a stop's or error's
+                submitted = finished[0]
+                save(*finished)
         except Exception as write_error:
             if error is None:
                 raise
@@ -1118,7 +1139,8 @@ def _child_run(job: dict, events, stop_event) -> None:
             signal.signal(signal.SIGTERM, lambda signum, frame: scheduler.request_stop())
             threading.Thread(target=forward_stop, daemon=True).start()
             result = run(job["cfg"], job["seeds"], job["run_dir"], resume=job["resume"], progress_fn=events.put,
-                         scheduler=scheduler, label=job["label"], stability=job["stability"])
+                         scheduler=scheduler, label=job["label"], stability=job["stability"],
+                         checkpoint_every=job["checkpoint_every"])
         events.put(_ChildResult(result, None))
     except BaseException as err:  # noqa: BLE001 (raised again in the parent)
         try:
@@ -1202,7 +1224,7 @@ _CHILD_JAX_CONFIG = tuple(dict.fromkeys(("jax_compilation_cache_dir", "jax_persi
 def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
                    progress_fn: ProgressFn | None = None, scheduler: Scheduler | None = None,
                    label: str = "", stability: bool = True, devices: int = 1,
-                   platform: str | None = "cpu", niceness: int = 0) -> dict:
+                   platform: str | None = "cpu", niceness: int = 0, checkpoint_every: int = 1) -> dict:
     """:func:`run` in a process of its own (forked from ``multiprocessing``'s forkserver,
     ``process_server.start``; this process's JAX settings that change a trace (precision,
     matmul precision, PRNG), compilation cache and program store): its Python work (tracing,
@@ -1216,15 +1238,17 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
     memory as :func:`child_environment` says). The iteration's programs as
     :func:`in_process_iteration_programs` resolves the scheduler's choice. ``niceness``: added
     to the child's, which is this process's (``os.nice``; the sum capped at 19): a lower share of
-    the host's cores while the processes compete for them (:data:`PROCESS_NICENESS`)."""
+    the host's cores while the processes compete for them (:data:`PROCESS_NICENESS`).
+    ``checkpoint_every``: see :func:`run`."""
     if platform not in ("cpu", None):
         raise ValueError(f"platform: {platform!r} is neither 'cpu' nor None (this process's devices)")
     check_niceness(niceness)
+    check_checkpoint_every(checkpoint_every)
     default_platform = jax.default_backend()
     ctx = process_server.context()
     events, stop_event = ctx.Queue(), ctx.Event()
     job = {"cfg": cfg, "seeds": list(seeds), "run_dir": str(run_dir), "resume": resume, "label": label,
-           "stability": stability, "devices": devices, "niceness": niceness,
+           "stability": stability, "devices": devices, "niceness": niceness, "checkpoint_every": checkpoint_every,
            "environment": {**child_environment(platform, default_platform), **timeline.environment()},
            "compile_jobs": 2 if scheduler is None else scheduler.compile_jobs,
            "iteration_programs": in_process_iteration_programs(
@@ -1267,7 +1291,7 @@ def run_in_process(cfg: config.Config, seeds, run_dir, *, resume: bool = False,
 def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
             scheduler: Scheduler | None = None, progress_fn: ProgressFn | None = None,
             stability: bool = True, platforms: dict | None = None, processes=(),
-            niceness: dict | None = None) -> dict:
+            niceness: dict | None = None, checkpoint_every: int = 1) -> dict:
     """Train several configurations side by side (threads), each into ``run_folder(out, …)``.
 
     Args:
@@ -1289,6 +1313,7 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
       niceness: {(scenario, algorithm): niceness} added to the processes of runs among
         ``processes`` (``run_in_process``; e.g. ``niceness_by_order(run_order(configs))``); the
         others keep this process's.
+      checkpoint_every: see :func:`run`.
     Returns:
       {(scenario, algorithm): the result of :func:`run`}.
     Raises:
@@ -1307,13 +1332,14 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
         raise ValueError(f"niceness: {', '.join(apart)} not trained in a process of its own (processes)")
     for value in niceness.values():
         check_niceness(value)
+    check_checkpoint_every(checkpoint_every)
     if processes:
         process_server.start()  # in this thread (the main one, where signals can be set), not a run's
     if scheduler is None:
         with Scheduler() as own:
             return run_all(configs, seeds, out, resume=resume, jobs=jobs, scheduler=own,
                            progress_fn=progress_fn, stability=stability, platforms=platforms,
-                           processes=processes, niceness=niceness)
+                           processes=processes, niceness=niceness, checkpoint_every=checkpoint_every)
     order = run_order(configs)
     scheduler.tracing.reset(len(configs) if not jobs or jobs >= len(configs) else 0)
     with (switch_interval(scheduler.switch_interval),
@@ -1328,11 +1354,12 @@ def run_all(configs: dict, seeds, out, *, resume: bool = False, jobs: int = 0,
                                            resume=resume, progress_fn=progress_fn, scheduler=scheduler,
                                            label=label, stability=stability,
                                            devices=scheduler.mesh_for(where).size, platform=where,
-                                           niceness=niceness.get(key, 0))
+                                           niceness=niceness.get(key, 0), checkpoint_every=checkpoint_every)
             else:
                 futures[key] = pool.submit(run, configs[key], seeds, run_folder(out, *key), resume=resume,
                                            progress_fn=progress_fn, scheduler=scheduler, ticket=i, label=label,
-                                           stability=stability, platform=(platforms or {}).get(key))
+                                           stability=stability, platform=(platforms or {}).get(key),
+                                           checkpoint_every=checkpoint_every)
         try:
             return {key: futures[key].result() for key in configs}
         except Interrupted:

@@ -219,7 +219,8 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     progress events arrive here, its checkpoints are in its folder, and its exception is raised
     here, also from a spawned child where the platform has no forkserver; SIGTERM stops it after
     its iteration in flight, and leaves the server that the children fork from alive. The
-    process's niceness is this one's plus the run's ``niceness``."""
+    process's niceness is this one's plus the run's ``niceness``; it writes the checkpoints that
+    ``checkpoint_every`` names."""
     from tolerances import assert_trees_within, scale_tol
 
     root, result = whole
@@ -239,7 +240,8 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
     monkeypatch.setenv(timeline.VARIABLE, str(tmp_path / "timeline"))  # passed to the child
     runs = runner.run_all({("A", "mdgps"): cfg}, SEEDS, tmp_path, scheduler=scheduler,
                           progress_fn=progress, processes=[("A", "mdgps")],
-                          platforms={("A", "mdgps"): "cpu"}, niceness={("A", "mdgps"): 3})
+                          platforms={("A", "mdgps"): "cpu"}, niceness={("A", "mdgps"): 3},
+                          checkpoint_every=2)
     monkeypatch.delenv(timeline.VARIABLE)
     marks = [(pid == os.getpid(), label) for _, pid, label in timeline.read(tmp_path / "timeline")
              if label != "runner imported"]  # the server's, where it started in this test
@@ -252,7 +254,8 @@ def test_a_run_in_its_own_process_equals_the_run_here(cfg, whole, scheduler, tmp
         assert_trees_within(got, want, scale_tol(want))
     assert run["history"].keys() == result["history"].keys()
     assert [e["iteration"] for e in events if "iteration" in e] == [1, 2, 3]
-    assert checkpoint.all_steps(runner.run_folder(tmp_path, "A", "mdgps") / "checkpoints") == [1, 2, 3]
+    # checkpoint_every=2 reached the child: iteration 2's and the last
+    assert checkpoint.all_steps(runner.run_folder(tmp_path, "A", "mdgps") / "checkpoints") == [2, 3]
     import multiprocessing.forkserver
 
     server = multiprocessing.forkserver._forkserver._forkserver_pid  # started by run_all, SIGTERM ignored

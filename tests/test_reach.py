@@ -1,6 +1,8 @@
 """The study command line (experiments.cli through experiments.reach): arguments are checked by
 the configuration and named, the backend choice, one-line failures."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -18,6 +20,7 @@ from gmr_jax import checkpoint, runner
     (["--T", "-3"], "task.T=-3"),
     (["--jobs", "-1"], "--jobs: must be an integer ≥ 0"),
     (["--compile-jobs", "0"], "--compile-jobs: must be a positive integer"),
+    (["--checkpoint-every", "0"], "--checkpoint-every: must be a positive integer"),
     (["--set", "novalue"], "GROUP__FIELD=VALUE"),
     (["--set", "gmr__alph=1"], "unknown field(s) ['alph'] in configuration group 'gmr'"),
     (["--set", "gmr__alpha=-1"], "gmr.alpha=-1"),
@@ -150,6 +153,15 @@ def test_fresh_run_into_a_folder_with_checkpoints_is_refused(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1
     assert (tmp_path / "config.json").read_text() == "earlier run"
     assert checkpoint.latest(ckpt) == 1
+
+
+def test_checkpoint_every_reaches_the_runs_and_config_json(tmp_path):
+    """--checkpoint-every 2 over three iterations: the run keeps checkpoints 2 and 3 (the last),
+    and the study's config.json records the setting."""
+    assert reach.main(["--out", str(tmp_path), "--scenario", "A", "--algorithm", "lqr", "--iterations", "3",
+                       "--checkpoint-every", "2", "--devices", "1", "--no-plots", "--compilation-cache", "none"]) == 0
+    assert checkpoint.all_steps(runner.run_folder(tmp_path, "A", "lqr") / "checkpoints") == [2, 3]
+    assert json.loads((tmp_path / "config.json").read_text())["checkpoint_every"] == 2
 
 
 def test_config_json_records_how_each_run_compiles_its_iteration():

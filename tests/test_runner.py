@@ -273,12 +273,12 @@ class _RecordedStep:
         return {"x": np.asarray(state["x"]) + 1}, metrics
 
 
-def _recorded_loop(step, scheduler, path, iterations, progress_fn=None):
+def _recorded_loop(step, scheduler, path, iterations, progress_fn=None, checkpoint_every=1):
     cfg = small("mdgps", iterations=iterations)
     return runner._train_loop(
         cfg, step, {"x": np.zeros(step.seeds, int)}, [], np.zeros((step.seeds, iterations, 2), np.uint32),
         iterations, path, {"seeds": list(range(step.seeds))}, runner._Layout(scheduler.mesh_for(None), step.seeds),
-        runner.Timer(), scheduler, progress_fn, "", time.perf_counter())
+        runner.Timer(), scheduler, progress_fn, "", time.perf_counter(), checkpoint_every)
 
 
 def test_the_loop_calls_each_iteration_before_it_reads_the_one_before(tmp_path, scheduler):
@@ -319,6 +319,30 @@ def test_a_stop_finishes_the_iteration_under_way(tmp_path):
         with pytest.raises(runner.Interrupted, match="stopped after iteration 2 of 4"):
             _recorded_loop(step, own, tmp_path / "ckpt", 4, stop_at_first)
     assert len(step.inputs) == 2 and checkpoint.all_steps(tmp_path / "ckpt") == [1, 2]
+
+
+def test_checkpoints_of_every_nth_iteration_the_last_and_a_stops(tmp_path, scheduler):
+    """checkpoint_every = 2 over 5 iterations: checkpoints 2, 4 and 5 (the last), each holding its
+    own iteration's state; a stop at iteration 3's report (iteration 4 already called) writes
+    iteration 4's (a scheduled one); a stop at iteration 2's writes iteration 3's, which no
+    schedule names; a value that is not a positive integer is refused in one line."""
+    state, history, _ = _recorded_loop(_RecordedStep(1), scheduler, tmp_path / "a", 5, checkpoint_every=2)
+    assert checkpoint.all_steps(tmp_path / "a") == [2, 4, 5]
+    template = {"x": np.zeros(1, int)}
+    for step in (2, 4, 5):
+        restored, meta = checkpoint.restore(tmp_path / "a", template, step=step)
+        assert np.asarray(restored["x"]).tolist() == [step]
+    for stop_at, written in ((3, [2, 4]), (2, [2, 3])):
+        with runner.Scheduler(compile_jobs=1, devices=1) as own:
+            stop = lambda e, own=own, at=stop_at: own.request_stop() if e.get("iteration") == at else None  # noqa: E731
+            with pytest.raises(runner.Interrupted, match=f"stopped after iteration {stop_at + 1} of 6"):
+                _recorded_loop(_RecordedStep(1), own, tmp_path / f"stop{stop_at}", 6, stop, checkpoint_every=2)
+        assert checkpoint.all_steps(tmp_path / f"stop{stop_at}") == written
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match=r"^checkpoint_every: .* is not a positive integer"):
+            runner.check_checkpoint_every(bad)
+    with pytest.raises(ValueError, match="checkpoint_every: 0"):
+        runner.run_all({}, [0], tmp_path / "none", checkpoint_every=0)
 
 
 def _disk_full_at_checkpoint_2(monkeypatch):
