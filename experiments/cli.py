@@ -275,7 +275,11 @@ def start_mps(args) -> str | None:
                 raise
             _no_mps_note(err)
             return None
-        gpus = mps.device_count() or 1  # none: JAX finds no GPU either, and _resolved stops the daemon
+        try:
+            gpus = mps.device_count() or 1  # none: JAX finds no GPU either, and _resolved stops the daemon
+        except BaseException:  # Ctrl-C too: no daemon left behind
+            mps.abandon(starting)
+            raise
         if args.mps == "auto" and not shares_one_gpu(args, gpus):
             mps.abandon(starting)  # one seed on several GPUs: the runs do not share one
             return None

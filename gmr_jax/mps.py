@@ -217,6 +217,8 @@ def finish(starting: Starting, timeout: float = 60.0) -> Daemon:
         if isinstance(error, (ValueError, IndexError)):
             raise Unavailable(f"{CONTROL}: the client printed no device count: {type(error).__name__}: "
                               f"{error}") from error
+        if isinstance(error, OSError):
+            raise Unavailable(f"{CONTROL}: {type(error).__name__}: {error}") from error
         raise
 
 

@@ -35,6 +35,7 @@ import functools
 import gc
 import json
 import multiprocessing
+import numbers
 import os
 import pathlib
 import pickle
@@ -778,8 +779,9 @@ def check_fresh(run_dirs) -> None:
 
 
 def check_checkpoint_every(checkpoint_every) -> None:
-    """Raises ValueError unless ``checkpoint_every`` is a positive integer."""
-    if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int) or checkpoint_every < 1:
+    """Raises ValueError unless ``checkpoint_every`` is a positive integer (NumPy's too)."""
+    if (isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, numbers.Integral)
+            or checkpoint_every < 1):
         raise ValueError(f"checkpoint_every: {checkpoint_every!r} is not a positive integer (1: after every "
                          "iteration)")
 

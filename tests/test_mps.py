@@ -220,7 +220,7 @@ def test_the_daemons_client_runs_while_the_command_starts_its_backend(tmp_path, 
     finishes only once the stand-in backend has started: a command that waited for it first
     would find no MPS); the GPUs are counted by the driver in this process, and under auto a
     count of two stops the daemon again (the runs do not share one GPU) and leaves this
-    process's GPU pool alone."""
+    process's GPU pool alone; a Ctrl-C while counting leaves no daemon behind."""
     import jax
 
     control, log = fake_control(tmp_path)
@@ -256,6 +256,14 @@ def test_the_daemons_client_runs_while_the_command_starts_its_backend(tmp_path, 
     assert "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ
     assert [c[-1] for c in calls(log)] == ["-d", "quit", "-d", "quit"]
     assert not list(tmp_path.glob("gmr-jax-mps-*"))
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mps, "device_count", interrupted)  # Ctrl-C while the GPUs are counted
+    with pytest.raises(KeyboardInterrupt):
+        cli.parse_args("reach", ["--backend", "mujoco"], start_daemons=True)
+    assert [c[-1] for c in calls(log)] == ["-d", "quit"] * 3 and not list(tmp_path.glob("gmr-jax-mps-*"))
 
 
 def test_the_daemon_processes_are_found_by_name_and_pipe_directory(tmp_path):

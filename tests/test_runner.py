@@ -338,9 +338,10 @@ def test_checkpoints_of_every_nth_iteration_the_last_and_a_stops(tmp_path, sched
             with pytest.raises(runner.Interrupted, match=f"stopped after iteration {stop_at + 1} of 6"):
                 _recorded_loop(_RecordedStep(1), own, tmp_path / f"stop{stop_at}", 6, stop, checkpoint_every=2)
         assert checkpoint.all_steps(tmp_path / f"stop{stop_at}") == written
-    for bad in (0, -1, 1.5, True, "2"):
+    for bad in (0, -1, 1.5, True, "2", np.int64(0)):
         with pytest.raises(ValueError, match=r"^checkpoint_every: .* is not a positive integer"):
             runner.check_checkpoint_every(bad)
+    runner.check_checkpoint_every(np.int64(3))
     with pytest.raises(ValueError, match="checkpoint_every: 0"):
         runner.run_all({}, [0], tmp_path / "none", checkpoint_every=0)
 
@@ -373,6 +374,19 @@ def test_a_failed_write_during_a_failure_becomes_its_note(tmp_path, scheduler, m
         _recorded_loop(_RecordedStep(1, bad=[(2, 0)]), scheduler, tmp_path / "ckpt", 5)
     assert any("writing a checkpoint failed" in note and "step 2" in note for note in info.value.__notes__)
     assert checkpoint.all_steps(tmp_path / "ckpt") == [1]
+
+
+def test_checkpoints_of_every_nth_iteration_after_a_failure_or_a_failed_write(tmp_path, scheduler, monkeypatch):
+    """checkpoint_every = 2: every seed fails in iteration 4, so iteration 3's checkpoint, which no
+    schedule names, is written as the last good one beside 2; where checkpoint 2's write fails,
+    the next scheduled write (4) raises its error and neither 3 nor 4 is written."""
+    with pytest.raises(runner.TrainingError, match="iteration 4"):
+        _recorded_loop(_RecordedStep(1, bad=[(3, 0)]), scheduler, tmp_path / "fail", 6, checkpoint_every=2)
+    assert checkpoint.all_steps(tmp_path / "fail") == [2, 3]
+    _disk_full_at_checkpoint_2(monkeypatch)
+    with pytest.raises(checkpoint.CheckpointError, match="step 2"):
+        _recorded_loop(_RecordedStep(1), scheduler, tmp_path / "full", 6, checkpoint_every=2)
+    assert checkpoint.all_steps(tmp_path / "full") == []
 
 
 def test_a_failure_with_the_next_iteration_under_way_keeps_the_checkpoints_before(tmp_path, scheduler):
