@@ -10,11 +10,12 @@ Two interchangeable backends run the same MJCF behind the same functions:
 
 * ``"mjx"``: MuJoCo MJX with ``impl='jax'``, pure JAX (default where JAX has a GPU).
   Differentiable (``jax.jacfwd`` through :func:`step` works).
-* ``"mujoco"``: C MuJoCo on the host, called once per control step through
-  ``jax.pure_callback`` with ``vmap_method="broadcast_all"``, so one callback receives the
-  whole (possibly nested) batch and steps it with ``mujoco.rollout`` (a large batch on several
-  host cores). It stays jittable and vmappable, and about 100× faster than MJX on a 2-core CPU
-  (10 rollouts of 80 steps, ``benchmarks/rollout.py``). Not differentiable (no JVP rule for the callback).
+* ``"mujoco"``: C MuJoCo on the host, called once per control step through a host callback
+  (``jax.pure_callback`` in a GPU program, ``jax.experimental.buffer_callback`` in a CPU one)
+  with ``vmap_method="broadcast_all"``, so one callback receives the whole (possibly nested)
+  batch and steps it with ``mujoco.rollout`` (a large batch on several host cores). It stays
+  jittable and vmappable, and about 100× faster than MJX on a 2-core CPU (10 rollouts of 80
+  steps, ``benchmarks/rollout.py``). Not differentiable (no JVP rule for the callback).
 
 Everything here is a pure function of arrays; :func:`rollout` works under ``jax.jit`` and under
 any number of nested ``jax.vmap``s over (policy, x0, eps). :func:`rollout_with_final` also
@@ -466,10 +467,8 @@ def _host_rollout(s: Sim, policy: types.LinearGaussianPolicy, x0: Array, eps: Ar
     out = (jax.ShapeDtypeStruct((T, x0.shape[-1]), dtype), jax.ShapeDtypeStruct((T, dU), dtype),
            jax.ShapeDtypeStruct(x0.shape, dtype))
     stepper = s._host()
-    return jax.pure_callback(
-        lambda *a: stepper.rollout(*a, limit=limit), out, x0, policy.K.astype(dtype),
-        policy.k.astype(dtype), policy.chol_pol_covar.astype(dtype), eps.astype(dtype),
-        vmap_method="broadcast_all")
+    return _host_callback(lambda *a: stepper.rollout(*a, limit=limit), out, x0, policy.K.astype(dtype),
+                          policy.k.astype(dtype), policy.chol_pol_covar.astype(dtype), eps.astype(dtype))
 
 
 def host_cores() -> int:
@@ -481,9 +480,37 @@ def host_cores() -> int:
 
 
 def _host_step(s: Sim, x: Array, u: Array) -> Array:
-    stepper = s._host()
-    return jax.pure_callback(stepper, jax.ShapeDtypeStruct(x.shape, x.dtype), x, u.astype(x.dtype),
-                             vmap_method="broadcast_all")
+    return _host_callback(s._host(), jax.ShapeDtypeStruct(x.shape, x.dtype), x, u.astype(x.dtype))
+
+
+def _host_callback(fn: Callable, result_shape_dtypes, *args: Array):
+    """``fn(*args)`` (NumPy arrays in, a pytree of NumPy arrays out, shaped like
+    ``result_shape_dtypes``) called on the host from the program being traced, with
+    ``vmap_method="broadcast_all"`` (one call receives the whole batch).
+
+    Traced for a GPU (``sharding.target_platform``): ``jax.pure_callback``. Traced for the CPU:
+    ``jax.experimental.buffer_callback``, which reads the operands in XLA's buffers and writes the
+    results into them. ``pure_callback`` would first put every operand on the first CPU device;
+    on several CPU devices (``--xla_force_host_platform_device_count``) each partition of a
+    sharded program then waits in its callback for a copy that runs, above about 100 KiB, in
+    the client's thread pool, whose threads are those partitions: the program never finished.
+    """
+    from gmr_jax import sharding  # noqa: PLC0415 (sharding needs nothing of this module)
+
+    if sharding.target_platform() != "cpu":
+        return jax.pure_callback(fn, result_shape_dtypes, *args, vmap_method="broadcast_all")
+    from jax.experimental.buffer_callback import buffer_callback  # noqa: PLC0415
+
+    def write(ctx, out, *operands):
+        del ctx
+        results = fn(*(np.asarray(a) for a in operands))
+        for i, (o, r) in enumerate(zip(jax.tree.leaves(out), jax.tree.leaves(results), strict=True)):
+            o = np.asarray(o)
+            if np.shape(r) != o.shape:
+                raise RuntimeError(f"host callback result {i}: shape {np.shape(r)}, expected {o.shape}")
+            o[...] = r
+
+    return buffer_callback(write, result_shape_dtypes, vmap_method="broadcast_all")(*args)
 
 
 def step_unclipped(s: Sim, x: Array, u: Array) -> Array:

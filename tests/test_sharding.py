@@ -1,7 +1,13 @@
 """Seeds split over a device mesh (gmr_jax.sharding, the runner): on four XLA CPU devices
 (tests/conftest.py) a sharded run equals the single-device run of the same keys, a seed count
 the devices do not divide is padded and the padding dropped, and a run resumes on another device
-count. The C MuJoCo backend's host callbacks run per device."""
+count. The C MuJoCo backend's host callbacks run per device, and a program of them over several
+CPU devices finishes."""
+
+import os
+import subprocess
+import sys
+import textwrap
 
 import jax
 import numpy as np
@@ -91,6 +97,49 @@ def test_library_train_over_a_mesh(cfg, four_devices, tolerances):
     for i in range(3):
         pick = lambda t: jax.tree_util.tree_map(lambda a: a[i], t)  # noqa: E731
         assert_trees_within(pick(sharded), pick(single), jax.tree_util.tree_leaves(tolerances[i]))
+
+
+_HOST_ROLLOUTS_OVER_FOUR_CPU_DEVICES = textwrap.dedent("""
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from gmr_jax import config, sharding, sim, types
+    s = sim.make_sim(config.SimConfig(backend="mujoco"))
+    S, N, T = 4, 5, 80  # a device's K operand [1, 5, 80, 6, 12] is 230 KB
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    K = 0.01 * jax.random.normal(k[0], (S, T, s.dU, s.dX))
+    kk = 0.1 * jax.random.normal(k[1], (S, T, s.dU))
+    chol = jnp.broadcast_to(0.1 * jnp.eye(s.dU), (S, T, s.dU, s.dU))
+    eps = jax.random.normal(k[2], (S, N, T, s.dU))
+    x0 = jnp.zeros((S, N, s.dX))
+
+    def per_seed(K, kk, chol, x0, eps):  # two independent rollouts: XLA runs them side by side
+        policy = types.LinearGaussianPolicy(K, kk, None, chol, None)
+        roll = jax.vmap(lambda x, e: sim.rollout_with_final(s, policy, x, e, with_ee=False))
+        return roll(x0, eps), roll(x0 + 0.1, eps)
+
+    f = jax.vmap(per_seed)
+    four = jax.jit(sharding.over_seeds(f, sharding.seed_mesh(4), (True,) * 5))(K, kk, chol, x0, eps)
+    one = jax.jit(f)(K, kk, chol, x0, eps)
+    for a, b in zip(jax.tree.leaves(four), jax.tree.leaves(one), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    print("same", len(jax.tree.leaves(four)))
+""")
+
+
+def test_host_rollouts_over_four_cpu_devices_finish_with_the_single_device_bits():
+    """C MuJoCo rollouts of 230 KB operands in a program split over four CPU devices, two per
+    device side by side, finish and give the single-device program's bits (each member is stepped
+    on its own, so the batch a callback receives does not change it). Through
+    ``jax.pure_callback`` this program never finished (``sim._host_callback``): run in a process
+    of its own, so that a hang fails this test instead of the suite."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    try:
+        done = subprocess.run([sys.executable, "-c", _HOST_ROLLOUTS_OVER_FOUR_CPU_DEVICES], env=env,
+                              capture_output=True, text=True, timeout=600)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the sharded program with host callbacks did not finish in 600 s")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.split() == ["same", "6"]
 
 
 def test_mesh_of_too_many_devices_is_refused():
