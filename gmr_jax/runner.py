@@ -860,18 +860,20 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         raise
     if step is not None:  # kept rollouts of an earlier, shorter run would outlive its policy
         (run_dir / ROLLOUTS_FILE).unlink(missing_ok=True)
-    state, history, iteration_s = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout,
-                                              timer, scheduler, progress_fn, label, t0, checkpoint_every)
-    timer["iterations_s"] = float(np.sum(iteration_s))
-    stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
-    result = {"history": stacked, "iteration_s": iteration_s}
-    if robustness is not None and len(history) == cfg.iterations:
-        result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
-        write_policy_rollouts(run_dir, list(seeds), result.pop("training_X"), result["robustness"]["X"])
-        if stability:
-            with timer("stability_s"):
-                params = jax.device_get(layout.real(state.policy.params))
-                result["stability"] = stability_lib.measure(cfg, params, result["robustness"]["X"])._asdict()
+    state, history, iteration_s, last_write = _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta,
+                                                          layout, timer, scheduler, progress_fn, label, t0,
+                                                          checkpoint_every)
+    with _written_after(last_write):  # the last checkpoint is written while the policies are evaluated
+        timer["iterations_s"] = float(np.sum(iteration_s))
+        stacked = {k: np.stack([np.asarray(h[k]) for h in history]) for k in history[0]} if history else {}
+        result = {"history": stacked, "iteration_s": iteration_s}
+        if robustness is not None and len(history) == cfg.iterations:
+            result.update(evaluate_robustness(cfg, state.policy.params, timer, robustness, layout))
+            write_policy_rollouts(run_dir, list(seeds), result.pop("training_X"), result["robustness"]["X"])
+            if stability:
+                with timer("stability_s"):
+                    params = jax.device_get(layout.real(state.policy.params))
+                    result["stability"] = stability_lib.measure(cfg, params, result["robustness"]["X"])._asdict()
     result["wall_s"] = time.perf_counter() - t0
     timeline.mark(f"run end {label}")
     result["timing"] = dict(timer)
@@ -988,9 +990,26 @@ def _wait_quietly(*work) -> None:
         pass
 
 
+@contextlib.contextmanager
+def _written_after(write: concurrent.futures.Future | None):
+    """Waits for ``write`` (a checkpoint's, or None) when the block ends; its error is raised, or
+    added as a note to the block's own."""
+    try:
+        yield
+    except BaseException as err:
+        if write is not None:
+            try:
+                write.result()
+            except Exception as write_error:  # noqa: BLE001 (the block's error goes on)
+                err.add_note(f"also, writing a checkpoint failed: {write_error}")
+        raise
+    if write is not None:
+        write.result()
+
+
 def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout: _Layout, timer, scheduler,
                 progress_fn, label, t0, checkpoint_every: int = 1):
-    """Iterations ``len(history) … stop − 1``.
+    """Iterations ``len(history) … stop − 1``: (state, history, iteration_s, last_write).
 
     An asynchronous step (``_PartsStep.asynchronous``: a split run's, whose host work runs in
     worker threads) is called for iteration i + 1 before iteration i's metrics are read, so that
@@ -1006,9 +1025,12 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
 
     The checkpoint of every ``checkpoint_every``-th iteration and of iteration ``stop`` is written
     by a thread of the scheduler's loop pool while the loop goes on, one at a time, in order; a
-    failed write raises at the next one or at the end, and no later checkpoint is written. A stop
-    request lets the iteration under way finish and be checkpointed. An exception still writes
-    the last finished iteration's checkpoint (a failed write then becomes a note of that
+    failed write raises at the next one or at the end, and no later checkpoint is written. When
+    every iteration up to ``stop`` is done, iteration ``stop``'s write may still be under way:
+    ``last_write`` is its future (None where nothing is left to write), for which the caller
+    waits (:func:`_written_after`) after the work that can go on beside it. A stop request lets
+    the iteration under way finish and be checkpointed before this returns. An exception still
+    writes the last finished iteration's checkpoint (a failed write then becomes a note of that
     exception), then waits for the iteration under way."""
     ahead_ok = getattr(step, "asynchronous", False)
     iteration_s, pending, ahead, writing, error, prefetched = [], None, None, None, None, {}
@@ -1079,8 +1101,14 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
         raise
     finally:
         try:
-            written()
-            if finished is not None and finished[0] != submitted:  # the scheduled one, or a stop's or error's
+            if error is None and len(history) == stop and pending is not None:  # done: the caller waits
+                job, pending = pending, None
+                submitted = job[0]
+                written()
+                writing = scheduler.loop_pool.submit(save, *job)
+            else:
+                written()
+            if finished is not None and finished[0] != submitted:  # a stop's or error's
                 submitted = finished[0]
                 save(*finished)
         except Exception as write_error:
@@ -1095,7 +1123,7 @@ def _train_loop(cfg, step, state, history, it_keys, stop, ckpt_dir, meta, layout
                               "from the beginning)")
         raise Interrupted(f"stopped after iteration {len(history)} of {cfg.iterations}; "
                           f"its checkpoint is in {ckpt_dir}")
-    return state, history, iteration_s
+    return state, history, iteration_s, writing
 
 
 def run_folder(out, scenario: str, algorithm: str) -> pathlib.Path:

@@ -273,12 +273,19 @@ class _RecordedStep:
         return {"x": np.asarray(state["x"]) + 1}, metrics
 
 
-def _recorded_loop(step, scheduler, path, iterations, progress_fn=None, checkpoint_every=1):
+def _recorded_loop(step, scheduler, path, iterations, progress_fn=None, checkpoint_every=1, last_write=None):
+    """``runner._train_loop`` over a recorded step; (state, history, iteration_s) once the last
+    checkpoint is written (its future is appended to ``last_write`` where that is a list)."""
     cfg = small("mdgps", iterations=iterations)
-    return runner._train_loop(
+    state, history, iteration_s, write = runner._train_loop(
         cfg, step, {"x": np.zeros(step.seeds, int)}, [], np.zeros((step.seeds, iterations, 2), np.uint32),
         iterations, path, {"seeds": list(range(step.seeds))}, runner._Layout(scheduler.mesh_for(None), step.seeds),
         runner.Timer(), scheduler, progress_fn, "", time.perf_counter(), checkpoint_every)
+    if last_write is not None:
+        last_write.append(write)
+    elif write is not None:
+        write.result()
+    return state, history, iteration_s
 
 
 def test_the_loop_calls_each_iteration_before_it_reads_the_one_before(tmp_path, scheduler):
@@ -387,6 +394,47 @@ def test_checkpoints_of_every_nth_iteration_after_a_failure_or_a_failed_write(tm
     with pytest.raises(checkpoint.CheckpointError, match="step 2"):
         _recorded_loop(_RecordedStep(1), scheduler, tmp_path / "full", 6, checkpoint_every=2)
     assert checkpoint.all_steps(tmp_path / "full") == []
+
+
+def test_the_last_checkpoint_is_written_beside_the_callers_next_work(tmp_path, scheduler, monkeypatch):
+    """After the last iteration the loop returns while its checkpoint is written: the write's
+    future, waited for by ``runner._written_after`` when the caller's block (the policies'
+    evaluation) ends, which raises the write's error, or adds it as a note to the block's own.
+    A stop or an error writes before the loop returns (the tests above)."""
+    real, release = checkpoint.save, threading.Event()
+
+    def held_at_3(path, state, step, metadata=None):
+        if step == 3:
+            assert release.wait(60)
+        return real(path, state, step, metadata)
+
+    monkeypatch.setattr(checkpoint, "save", held_at_3)
+    writes = []
+    _recorded_loop(_RecordedStep(1), scheduler, tmp_path / "a", 3, last_write=writes)
+    (write,) = writes
+    assert not write.done() and checkpoint.all_steps(tmp_path / "a") == [1, 2]
+    with runner._written_after(write):
+        release.set()
+    assert write.done() and checkpoint.all_steps(tmp_path / "a") == [1, 2, 3]
+    with runner._written_after(None):
+        pass
+
+    def full_at_3(path, state, step, metadata=None):
+        if step == 3:
+            raise checkpoint.CheckpointError("checkpoint step 3: No space left on device")
+        return real(path, state, step, metadata)
+
+    monkeypatch.setattr(checkpoint, "save", full_at_3)
+    for root, block_error in (("b", None), ("c", RuntimeError("evaluation failed"))):
+        writes = []
+        _recorded_loop(_RecordedStep(1), scheduler, tmp_path / root, 3, last_write=writes)
+        with pytest.raises(type(block_error) if block_error else checkpoint.CheckpointError) as info:
+            with runner._written_after(writes[0]):
+                if block_error:
+                    raise block_error
+        if block_error:
+            assert any("writing a checkpoint failed" in note and "step 3" in note for note in info.value.__notes__)
+        assert checkpoint.all_steps(tmp_path / root) == [1, 2]
 
 
 def test_a_failure_with_the_next_iteration_under_way_keeps_the_checkpoints_before(tmp_path, scheduler):
