@@ -9,7 +9,7 @@ Two measurements (``--mode``):
   same process; the ratio rollout / bare is the figure that matters (the overhead of the
   rollout layer). Compile times are reported separately (lower + compile).
 * ``compare`` (default on a CPU): ``--cpu-rollouts`` rollouts (10) of T steps with the ``mujoco``
-  backend (C MuJoCo through ``jax.pure_callback``) and with the ``mjx`` backend; wall time per
+  backend (C MuJoCo through a host callback) and with the ``mjx`` backend; wall time per
   call after compilation, compile time, and the speed-up.
 
 Prints a markdown table to stdout and writes everything as JSON to ``--out``. Examples::

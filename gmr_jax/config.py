@@ -75,8 +75,8 @@ class SimConfig:
       substeps: physics steps per control step; the physics timestep is control_dt / substeps.
       gravity_compensation: the plant adds the gravity torques (as the Jaco's torque mode does).
       clip_torques: saturate commanded torques at the actuator peak torques (ctrlrange).
-      backend: ``"mjx"`` (MJX, impl='jax'), ``"mujoco"`` (C MuJoCo on the host through
-        ``jax.pure_callback``) or ``"auto"`` (mjx where JAX has a GPU, else mujoco).
+      backend: ``"mjx"`` (MJX, impl='jax'), ``"mujoco"`` (C MuJoCo on the host through a
+        host callback, ``sim._host_callback``) or ``"auto"`` (mjx where JAX has a GPU, else mujoco).
       float32: a diagnostic beside ``Config.float32_stages``: in a float64 run, MJX steps the
         plant in float32 (states and torques rounded to float32 at each control step, the result
         widened back), everything else stays in float64. MJX only.

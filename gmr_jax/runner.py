@@ -829,6 +829,8 @@ def run(cfg: config.Config, seeds, run_dir, *, resume: bool = False, stop_after:
         iteration, the metric ``seed_failed`` [S] marks it from then on, and a message event
         names it. Interrupted: the scheduler's stop was requested (checkpoint written).
       checkpoint.CheckpointError: a checkpoint cannot be written or belongs to other settings.
+        The last one is written while the policies are evaluated: its failure is raised after
+        the evaluation (whose rollouts file, ``ROLLOUTS_FILE``, ``--resume`` then removes).
     """
     check_checkpoint_every(checkpoint_every)
     if scheduler is None:

@@ -501,13 +501,19 @@ def _host_callback(fn: Callable, result_shape_dtypes, *args: Array):
         return jax.pure_callback(fn, result_shape_dtypes, *args, vmap_method="broadcast_all")
     from jax.experimental.buffer_callback import buffer_callback  # noqa: PLC0415
 
+    def read_only(buffer) -> np.ndarray:  # XLA's operand memory, which other operations may share
+        a = np.asarray(buffer)
+        a.flags.writeable = False
+        return a
+
     def write(ctx, out, *operands):
         del ctx
-        results = fn(*(np.asarray(a) for a in operands))
+        results = fn(*(read_only(a) for a in operands))
         for i, (o, r) in enumerate(zip(jax.tree.leaves(out), jax.tree.leaves(results), strict=True)):
-            o = np.asarray(o)
-            if np.shape(r) != o.shape:
-                raise RuntimeError(f"host callback result {i}: shape {np.shape(r)}, expected {o.shape}")
+            o, r = np.asarray(o), np.asarray(r)
+            if r.shape != o.shape or r.dtype != o.dtype:  # as pure_callback checks
+                raise RuntimeError(f"host callback result {i}: {r.dtype}{list(r.shape)}, expected "
+                                   f"{o.dtype}{list(o.shape)}")
             o[...] = r
 
     return buffer_callback(write, result_shape_dtypes, vmap_method="broadcast_all")(*args)

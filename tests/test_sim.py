@@ -433,3 +433,23 @@ def test_backends_agree(s, batched):
     lower = 47 * math.pi / 180
     assert lower - 0.015 < q2.min() < lower
     assert abs(q2[-1] - lower) < 2e-3
+
+
+def test_host_callback_in_a_cpu_program_checks_results_and_reads_operands_only():
+    """``sim._host_callback`` in a CPU program (``buffer_callback``): a result of another dtype or
+    shape is an error, as ``jax.pure_callback`` makes it, and the operands, XLA's own memory,
+    cannot be written; a right result comes back."""
+    x = jnp.arange(3.0)
+    spec = jax.ShapeDtypeStruct(x.shape, x.dtype)
+    call = lambda fn: jax.block_until_ready(jax.jit(lambda y: sim._host_callback(fn, spec, y))(x))  # noqa: E731
+    for bad in (lambda a: a.astype(np.float32), lambda a: a[:2]):
+        with pytest.raises(jax.errors.JaxRuntimeError, match="host callback result 0"):
+            call(bad)
+
+    def scribble(a):
+        a[0] = 1.0
+        return a
+
+    with pytest.raises(jax.errors.JaxRuntimeError, match="read-only"):
+        call(scribble)
+    np.testing.assert_array_equal(call(lambda a: 2 * a), [0.0, 2.0, 4.0])
