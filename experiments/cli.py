@@ -112,7 +112,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
                    help="skip the closed-loop stability of the trained policies (gmr_jax.stability: "
                         "spectral radius of the one-step Jacobian at the target and along the "
                         "robustness rollouts). Its C MuJoCo finite differences take about 0.17 s "
-                        "per seed on 16 host cores (40-45 s for 256 seeds)")
+                        "per seed on 16 host cores (40-48 s for 256 seeds)")
     p.add_argument("--jobs", type=_nonnegative_int, default=0,
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
