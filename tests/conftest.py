@@ -1,4 +1,5 @@
-"""Test set-up: float64 numerics for every test, four CPU devices, and one runner scheduler."""
+"""Test set-up: float64 numerics for every test, four CPU devices, a fast-compiling CPU code
+generator, and one runner scheduler."""
 
 import ctypes.util
 import os
@@ -7,9 +8,22 @@ import sys
 # Four XLA CPU devices, so that the seed axis can be split over a device mesh
 # (tests/test_sharding.py); every other computation runs on the first device as before. Set
 # before JAX starts its backend.
+#
+# The suite's time on a CPU is mostly XLA's compilation of hundreds of small programs, and most of
+# that is LLVM optimising the generated code. The tests compile with LLVM's optimisation level 0
+# and without XLA's CPU fusion emitters (the option the runner compiles its CPU programs with,
+# ``sharding.CPU_COMPILER_OPTIONS``): the suite takes less than half the time (benchmarks/RESULTS.md,
+# thirty-fourth session). Both change how XLA generates code, so round-off may differ from the
+# default code generator's; the suite compares programs compiled the same way, or within a
+# tolerance measured from the computation, and the tests whose property is about the default code
+# generator compile with it (``tolerances.XLA_DEFAULT_CPU_CODEGEN``). A flag already in XLA_FLAGS
+# wins (e.g. ``XLA_FLAGS=--xla_backend_optimization_level=2``).
+_TEST_FLAGS = {"xla_force_host_platform_device_count": "4",
+               "xla_backend_optimization_level": "0",
+               "xla_cpu_use_fusion_emitters": "false"}
 _FLAGS = os.environ.get("XLA_FLAGS", "")
-if "xla_force_host_platform_device_count" not in _FLAGS:
-    os.environ["XLA_FLAGS"] = f"{_FLAGS} --xla_force_host_platform_device_count=4".strip()
+os.environ["XLA_FLAGS"] = " ".join([_FLAGS] + [f"--{name}={value}" for name, value in _TEST_FLAGS.items()
+                                               if f"--{name}=" not in _FLAGS]).strip()
 
 # Offscreen rendering (gmr_jax.render) needs the backend chosen before MuJoCo's first import.
 # Only where libEGL exists: without it PyOpenGL's EGL import raises inside ``import mujoco``.

@@ -13,7 +13,7 @@ import optax
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from tolerances import SAFETY, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
+from tolerances import SAFETY, XLA_DEFAULT_CPU_CODEGEN, assert_close, assert_tolerances_small, assert_trees_within, linear_tol, measured_tol
 
 from gmr_jax.config import GMRConfig, MLPConfig, SStepConfig
 from gmr_jax.policies import Policy, base, make_policy, make_sstep_data
@@ -521,10 +521,13 @@ def test_last_epoch_statistics_equal_the_last_of_all(name, statistics, extra):
     with pytest.raises(ValueError, match="sstep.statistics_epochs"):
         SStepConfig(statistics_epochs="first")
     if statistics == "step":  # once per policy: the reference form returns the last epoch of its curve
-        ref_all = _sstep(pol, params, data, jax.random.key(3), cfg, impl="reference")[1]
+        # Two programs again, so a tolerance from the computation: they are the same to the bit
+        # with XLA's default CPU code generator, not always with the suite's (tests/conftest.py).
+        ref_all, tol_all = measured_tol(lambda p, d: _sstep(pol, p, d, jax.random.key(3), cfg, impl="reference")[1],
+                                        (params, data), SAFETY)
         ref_last = _sstep(pol, params, data, jax.random.key(3), dataclasses.replace(cfg, statistics_epochs="last"),
                           impl="reference")[1]
-        assert_trees_within(ref_last, last(ref_all), 0.0)
+        assert_trees_within(ref_last, last(ref_all), tol_all)
 
 
 # ------------------------------------------------ the kernel form against the packed form
@@ -588,7 +591,10 @@ def test_kernel_without_a_kernel_runs_packed(policy):
 
 
 def test_adam_update_equals_optax():
-    """The S-step's Adam is optax.adam operation for operation: bit for bit, float64 and float32."""
+    """The S-step's Adam is optax.adam operation for operation: bit for bit, float64 and float32,
+    with XLA's default CPU code generator. Without its fusion emitters (the runner's CPU option,
+    ``sharding.CPU_COMPILER_OPTIONS``, which the suite uses elsewhere: tests/conftest.py), a few
+    entries of the two sequences round differently."""
     cfg = SStepConfig()
     rng = np.random.default_rng(0)
     for dtype in (jnp.float64, jnp.float32):
@@ -607,7 +613,7 @@ def test_adam_update_equals_optax():
                 new, mu, nu = adam_update(cfg, new, mu, nu, g, c1[t], c2[t])
             return ref, new
 
-        ref, new = both(theta, grads)
+        ref, new = both.lower(theta, grads).compile(compiler_options=XLA_DEFAULT_CPU_CODEGEN)(theta, grads)
         assert new.dtype == dtype
         np.testing.assert_array_equal(new, ref)
 

@@ -32,6 +32,11 @@ import numpy as np
 
 EPS = float(np.finfo(np.float64).eps)
 
+# XLA's default CPU code generator as compile options (``Lowered.compile(compiler_options=...)``),
+# for the tests whose property is about it: the suite otherwise compiles with LLVM's level 0 and
+# without XLA's CPU fusion emitters (tests/conftest.py).
+XLA_DEFAULT_CPU_CODEGEN = {"xla_backend_optimization_level": 2, "xla_cpu_use_fusion_emitters": True}
+
 # Safety factor of ``measured_tol``. Rounding differs between two programs at every operation,
 # each by a few ε (a sum of n terms reassociated: up to n·ε, typically √n·ε), and those
 # differences add up; measured on a 2-core AMD EPYC (AVX-512), whole GPS iterations jit vs eager
