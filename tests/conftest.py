@@ -3,6 +3,7 @@ generator, and one runner scheduler."""
 
 import ctypes.util
 import os
+import re
 import sys
 
 # Four XLA CPU devices, so that the seed axis can be split over a device mesh
@@ -17,13 +18,13 @@ import sys
 # default code generator's; the suite compares programs compiled the same way, or within a
 # tolerance measured from the computation, and the tests whose property is about the default code
 # generator compile with it (``tolerances.XLA_DEFAULT_CPU_CODEGEN``). A flag already in XLA_FLAGS
-# wins (e.g. ``XLA_FLAGS=--xla_backend_optimization_level=2``).
+# wins (e.g. ``XLA_FLAGS=--xla_backend_optimization_level=3``, XLA's default).
 _TEST_FLAGS = {"xla_force_host_platform_device_count": "4",
                "xla_backend_optimization_level": "0",
                "xla_cpu_use_fusion_emitters": "false"}
 _FLAGS = os.environ.get("XLA_FLAGS", "")
 os.environ["XLA_FLAGS"] = " ".join([_FLAGS] + [f"--{name}={value}" for name, value in _TEST_FLAGS.items()
-                                               if f"--{name}=" not in _FLAGS]).strip()
+                                               if not re.search(rf"--{name}(=|\s|$)", _FLAGS)]).strip()
 
 # Offscreen rendering (gmr_jax.render) needs the backend chosen before MuJoCo's first import.
 # Only where libEGL exists: without it PyOpenGL's EGL import raises inside ``import mujoco``.

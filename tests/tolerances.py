@@ -35,7 +35,7 @@ EPS = float(np.finfo(np.float64).eps)
 # XLA's default CPU code generator as compile options (``Lowered.compile(compiler_options=...)``),
 # for the tests whose property is about it: the suite otherwise compiles with LLVM's level 0 and
 # without XLA's CPU fusion emitters (tests/conftest.py).
-XLA_DEFAULT_CPU_CODEGEN = {"xla_backend_optimization_level": 2, "xla_cpu_use_fusion_emitters": True}
+XLA_DEFAULT_CPU_CODEGEN = {"xla_backend_optimization_level": 3, "xla_cpu_use_fusion_emitters": True}
 
 # Safety factor of ``measured_tol``. Rounding differs between two programs at every operation,
 # each by a few ε (a sum of n terms reassociated: up to n·ε, typically √n·ε), and those
