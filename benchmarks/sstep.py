@@ -176,6 +176,10 @@ def parse_args(argv=None):
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
                    help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
+    p.add_argument("--batch-size", type=int, default=config.SStepConfig.batch_size,
+                   help="rows per minibatch (default: the paper's %(default)s); with several values in "
+                        "separate runs, the time per Adam step against the rows tells a step's fixed cost "
+                        "from its cost per row")
     p.add_argument("--statistics", default=config.SStepConfig.statistics,
                    help=f"comma-separated sstep.statistics of the packed form ({', '.join(config.SSTEP_STATISTICS)}): "
                         "the loss's statistics per epoch from the kept weights, or inside every step")
@@ -208,6 +212,8 @@ def parse_args(argv=None):
                    "(trace written under DIR) and report its kernels per Adam step, their busy time and "
                    "the device's idle share (GPU only; benchmarks.trace)")
     args = p.parse_args(argv)
+    if args.batch_size < 1:
+        p.error(f"--batch-size {args.batch_size}: must be a positive integer")
     for flag, value, allowed in (("--adam-entries", args.adam_entries, config.SSTEP_ADAM_ENTRIES),
                                  ("--statistics", args.statistics, config.SSTEP_STATISTICS),
                                  ("--statistics-epochs", args.statistics_epochs, config.SSTEP_STATISTICS_EPOCHS),
@@ -247,7 +253,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
                  else contextlib.nullcontext)
     cfg = config.reach(scenario, algorithm, sstep__epochs=args.epochs, sstep__unroll=unroll,
                        sstep__adam_entries=adam_entries, sstep__statistics=stats_at,
-                       sstep__statistics_epochs=stats_epochs)
+                       sstep__statistics_epochs=stats_epochs, sstep__batch_size=args.batch_size)
     pol = policies.for_config(cfg)
     # with --against-float64, the data and initial weights are made in float64 and rounded
     made = jnp.float64 if args.against_float64 else dtype
@@ -261,6 +267,9 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         data = jax.vmap(lambda k: synthetic_data(cfg, k, made))(keys)
         fn = jax.jit(lambda p, d, k: jax.vmap(lambda p, d, k: sstep.sstep(pol, p, d, k, cfg.sstep, impl=impl))(
             p, d, jax.random.split(k, args.seeds)))
+    if data.x.shape[-2] < cfg.sstep.batch_size:
+        raise SystemExit(f"--batch-size {cfg.sstep.batch_size}: more than the {data.x.shape[-2]} rows of "
+                         f"{algorithm} {scenario}'s data set; use at most {data.x.shape[-2]}")
     exact = None
     if args.against_float64:
         params, data = _as_float(params, jnp.float64), _as_float(data, jnp.float64)
@@ -310,7 +319,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "statistics_epochs": stats_epochs,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
-           "rows": int(data.x.shape[-2]), "adam_steps": steps, "compile_s": compile_s,
+           "rows": int(data.x.shape[-2]), "batch_size": cfg.sstep.batch_size, "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile,
            # to tell whether two processes (e.g. other XLA_FLAGS) trained bit-identical weights
