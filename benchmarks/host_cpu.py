@@ -9,19 +9,25 @@ the host's cores were busy and with what::
 
     python -m benchmarks.host_cpu --out cpu.json -- python -m experiments.reach --out /tmp/s
 
-A thread that starts and ends between two samples is missed; its time is the difference between
-``cpu_s_children`` (the command's CPU time and that of the descendants it waited for, as the
-kernel counts it when they end) and ``cpu_s_seen`` (the sum over the threads sampled). The command's exit status is this command's.
+``cpu_s_seen`` sums each thread's counters at its last sample: it misses the threads that start
+and end between two samples, a thread's time after its last sample, processes that leave the
+tree (a daemon's double fork) and whatever runs on after the command itself has ended.
+``cpu_s_children`` is what the kernel credits to the command when it ends: its own time and
+that of the descendants it (or they) waited for, so not the children of a ``multiprocessing``
+forkserver, which nobody waits for. Either can be the larger. The command's exit status is
+this command's (128 + N for a command killed by signal N, as a shell reports it).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import pathlib
 import platform
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -32,12 +38,20 @@ TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 def _children(pid: int) -> list[int]:
     """The pids of ``pid``'s children (all its threads' ``children`` lists)."""
     out = []
-    for task in pathlib.Path(f"/proc/{pid}/task").glob("*"):
+    for tid in _tasks(pid):
         try:
-            out += [int(c) for c in (task / "children").read_text().split()]
-        except OSError:
+            out += [int(c) for c in pathlib.Path(f"/proc/{pid}/task/{tid}/children").read_text().split()]
+        except OSError:  # ended meanwhile
             pass
     return out
+
+
+def _tasks(pid: int) -> list[str]:
+    """The thread ids of ``pid`` (none once it has ended)."""
+    try:
+        return os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
 
 
 def process_tree(pid: int) -> list[int]:
@@ -51,17 +65,19 @@ def process_tree(pid: int) -> list[int]:
 
 
 def thread_times(pids) -> dict:
-    """{(pid, tid): (thread name, CPU-seconds so far)} for every thread of ``pids``."""
+    """{(pid, tid, start tick): (thread name, CPU-seconds so far)} for every thread of ``pids``
+    (the start time tells a reused thread id from the thread that had it before)."""
     out = {}
     for pid in pids:
-        for task in pathlib.Path(f"/proc/{pid}/task").glob("*"):
+        for tid in _tasks(pid):
             try:
-                stat = (task / "stat").read_text()
-            except OSError:
+                stat = pathlib.Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+            except OSError:  # ended meanwhile
                 continue
             name = stat[stat.index("(") + 1:stat.rindex(")")]
+            # the fields after the name, from the state (field 3 of proc(5)): utime 14, stime 15, starttime 22
             fields = stat[stat.rindex(")") + 2:].split()
-            out[(pid, int(task.name))] = (name, (int(fields[11]) + int(fields[12])) / TICK)
+            out[(pid, int(tid), int(fields[19]))] = (name, (int(fields[11]) + int(fields[12])) / TICK)
     return out
 
 
@@ -96,7 +112,7 @@ def sample(cmd: list[str], interval: float) -> dict:
     seen = sum(g["cpu_s"] for g in groups.values())
     after = os.times()
     children = (after.children_user - before.children_user) + (after.children_system - before.children_system)
-    return {"command": cmd, "returncode": proc.returncode, "wall_s": round(wall, 2),
+    return {"command": cmd, "returncode": 128 - proc.returncode if proc.returncode < 0 else proc.returncode, "wall_s": round(wall, 2),
             "cpu_s_seen": round(seen, 2),
             "cpu_s_children": round(children, 2),
             "cores": len(os.sched_getaffinity(0)), "cpu": platform.processor() or platform.machine(),
@@ -115,8 +131,12 @@ def main(argv=None) -> int:
         parser.error("no command given: put it after --, e.g. -- python -m experiments.reach")
     if not pathlib.Path("/proc/self/task").exists():
         parser.error("this needs Linux's /proc; run it on Linux")
-    if args.interval <= 0:
-        parser.error(f"--interval {args.interval}: must be positive")
+    if not (math.isfinite(args.interval) and args.interval > 0):
+        parser.error(f"--interval {args.interval}: must be a positive number of seconds")
+    if args.out and not pathlib.Path(args.out).resolve().parent.is_dir():
+        parser.error(f"--out {args.out}: its folder does not exist; create it first")
+    if shutil.which(cmd[0]) is None:
+        parser.error(f"{cmd[0]}: no such command (not a file, not on PATH)")
     report = sample(cmd, args.interval)
     model = next((line.split(":", 1)[1].strip() for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines()
                   if line.startswith("model name")), report["cpu"])

@@ -246,7 +246,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     tag = (f"{algorithm}_{scenario}_u{unroll}_{impl}" + (f"_{adam_entries}_{stats_at}" if impl == "packed" else "")
            + ("" if stats_epochs == config.SStepConfig.statistics_epochs else f"_{stats_epochs}")
            + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
-           + ("" if options == "runner" else f"_{options}"))
+           + ("" if options == "runner" else f"_{options}")
+           + ("" if args.batch_size == config.SStepConfig.batch_size else f"_b{args.batch_size}"))
     options_given = compiler_options(options, args.seeds)
     # the runner traces a program of n seeds per device under its choices for n (seed_block)
     traced_as = (functools.partial(sharding.seed_block, args.seeds) if options == "runner"

@@ -18,6 +18,11 @@ def test_thread_names_are_grouped_without_their_numbers(name, expected):
     assert host_cpu.group(name) == expected
 
 
+def test_a_command_killed_by_a_signal_exits_as_a_shell_reports_it():
+    report = host_cpu.sample([sys.executable, "-c", "import os, signal; os.kill(os.getpid(), signal.SIGTERM)"], 0.05)
+    assert report["returncode"] == 128 + 15
+
+
 def test_a_grandchild_threads_cpu_time_is_seen(tmp_path):
     burnt = tmp_path / "burnt"
     grandchild = textwrap.dedent(f"""
@@ -36,7 +41,8 @@ def test_a_grandchild_threads_cpu_time_is_seen(tmp_path):
     tick = 1 / host_cpu.TICK
     # /proc counts whole clock ticks per thread; the thread measured itself before its last tick
     assert report["groups"]["burner"]["cpu_s"] >= measured - 2 * tick
+    # and not counted twice: after measuring itself the thread only writes a file and sleeps
+    assert report["groups"]["burner"]["cpu_s"] <= measured + 0.1
     threads = sum(g["threads"] for g in report["groups"].values())
     # every thread seen belongs to a process this one waited for, so its time is in the children's
     assert report["cpu_s_seen"] <= report["cpu_s_children"] + threads * tick
-    assert report["wall_s"] >= 0.9 and report["series"]
