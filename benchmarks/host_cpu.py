@@ -86,6 +86,16 @@ def group(name: str) -> str:
     return re.sub(r"[-_/:.]?\d+$", "", name) or name
 
 
+def cpu_model() -> str:
+    """The host CPU's model name (``/proc/cpuinfo``), else ``platform.machine()``."""
+    try:
+        lines = pathlib.Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    return next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")),
+                platform.machine())
+
+
 def sample(cmd: list[str], interval: float) -> dict:
     """Run ``cmd`` and sample its threads every ``interval`` s; returns the report (see module)."""
     before = os.times()
@@ -112,10 +122,10 @@ def sample(cmd: list[str], interval: float) -> dict:
     seen = sum(g["cpu_s"] for g in groups.values())
     after = os.times()
     children = (after.children_user - before.children_user) + (after.children_system - before.children_system)
-    return {"command": cmd, "returncode": 128 - proc.returncode if proc.returncode < 0 else proc.returncode, "wall_s": round(wall, 2),
-            "cpu_s_seen": round(seen, 2),
-            "cpu_s_children": round(children, 2),
-            "cores": len(os.sched_getaffinity(0)), "cpu": platform.processor() or platform.machine(),
+    rc = proc.returncode
+    return {"command": cmd, "returncode": 128 - rc if rc < 0 else rc, "wall_s": round(wall, 2),
+            "cpu_s_seen": round(seen, 2), "cpu_s_children": round(children, 2),
+            "cores": len(os.sched_getaffinity(0)), "cpu": cpu_model(),
             "groups": dict(sorted(groups.items(), key=lambda kv: -kv[1]["cpu_s"])),
             "interval_s": interval, "series": series}
 
@@ -138,11 +148,8 @@ def main(argv=None) -> int:
     if shutil.which(cmd[0]) is None:
         parser.error(f"{cmd[0]}: no such command (not a file, not on PATH)")
     report = sample(cmd, args.interval)
-    model = next((line.split(":", 1)[1].strip() for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines()
-                  if line.startswith("model name")), report["cpu"])
-    report["cpu"] = model
     busy = max(report["cpu_s_children"], report["cpu_s_seen"])  # a forkserver's children are not waited for
-    print(f"{' '.join(cmd)}\n  wall {report['wall_s']:.1f} s on {report['cores']} cores ({model}); "
+    print(f"{' '.join(cmd)}\n  wall {report['wall_s']:.1f} s on {report['cores']} cores ({report['cpu']}); "
           f"CPU {report['cpu_s_children']:.1f} s in all (the waited-for processes), {report['cpu_s_seen']:.1f} s "
           f"in the threads sampled = {busy / max(report['wall_s'], 1e-9):.2f} cores busy on average")
     for name, g in report["groups"].items():
