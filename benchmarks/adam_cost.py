@@ -1,0 +1,111 @@
+"""What Adam's update alone costs per step on the CPU, against the same memory traffic without
+its divisions and square root.
+
+``gmr_jax.adam.adam_update`` repeats ``optax.adam`` operation for operation: per entry three
+divisions and a square root (μ/c1, ν/c2, √, the quotient), which a CPU's vector units run far
+more slowly than multiplications and additions. This benchmark times a ``lax.scan`` of
+``--steps`` updates of a vector of ``--entries`` weights (default: GMR's 21 687) in two forms,
+each step's gradient a cheap function of the weights so that the steps stay sequential:
+
+- ``adam``: ``adam_update`` as the S-step runs it;
+- ``no_division``: the same loads and stores (θ, μ, ν read and written) with multiplications and
+  additions only, the traffic's floor.
+
+Their difference is what the divisions and the square root cost per Adam step::
+
+    python -m benchmarks.adam_cost --out adam.json
+    PJRT_NPROC=1 taskset -c 0 python -m benchmarks.adam_cost   # XLA's pool one thread wide
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+
+from experiments import cli
+from gmr_jax.adam import adam_corrections, adam_update
+from gmr_jax.config import SStepConfig
+
+FORMS = ("adam", "no_division")
+GMR_WEIGHTS = 21_687
+"""The number of GMR's network weights at the paper's sizes (``benchmarks.sstep``'s loop body)."""
+
+
+def update_loop(form: str, entries: int, steps: int, cfg: SStepConfig = SStepConfig()):
+    """A jitted ``fn(theta [entries]) -> theta`` after ``steps`` updates of ``form``."""
+    if form not in FORMS:
+        raise ValueError(f"form {form!r}: choose one of {', '.join(FORMS)}")
+    dtype = jnp.zeros(()).dtype
+    c1, c2 = adam_corrections(cfg, steps, dtype)
+
+    def body(carry, corrections):
+        theta, mu, nu = carry
+        grad = 1e-3 * theta + 1e-4  # depends on the weights: the steps stay sequential
+        if form == "adam":
+            return adam_update(cfg, theta, mu, nu, grad, *corrections), None
+        return (theta - 1e-3 * grad, mu + grad, nu + 1e-3 * mu), None
+
+    def run(theta):
+        zeros = jnp.zeros_like(theta)
+        return jax.lax.scan(body, (theta, zeros, zeros), (c1, c2))[0][0]
+
+    return jax.jit(run)
+
+
+def time_form(form: str, entries: int, steps: int, repeats: int) -> float:
+    """The fastest of ``repeats`` timed runs, µs per step (after one run that compiles)."""
+    fn = update_loop(form, entries, steps)
+    theta = jnp.ones(entries)
+    fn(theta).block_until_ready()
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn(theta).block_until_ready()
+        best = min(best, time.perf_counter() - t)
+    return best / steps * 1e6
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive integer")
+    return value
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.adam_cost", description=__doc__.split("\n\n")[0])
+    p.add_argument("--entries", type=_positive_int, default=GMR_WEIGHTS, help="weights updated (default: GMR's)")
+    p.add_argument("--steps", type=_positive_int, default=4000, help="Adam steps per timed run")
+    p.add_argument("--repeats", type=_positive_int, default=3, help="timed runs per form (the fastest counts)")
+    cli.add_precision_argument(p)
+    p.add_argument("--out", help="write the results as JSON to this file")
+    args = p.parse_args(argv)
+    if args.out and not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
+        p.error(f"--out {args.out}: its folder does not exist; create it first")
+    args.precision = cli.setup_jax(args.precision)
+    dev = jax.devices()[0]
+    env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind, "platform": dev.platform,
+           "cpu": cli.host_cpu()["model"], "precision": args.precision, "jax": jax.__version__,
+           "python": platform.python_version(), "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+           "PJRT_NPROC": os.environ.get("PJRT_NPROC"), "affinity": sorted(os.sched_getaffinity(0))}
+    print(f"Device: {env['device']} ({env['cpu']}), {args.precision}, jax {env['jax']}, "
+          f"{args.entries} weights, {args.steps} steps", flush=True)
+    rows = {form: time_form(form, args.entries, args.steps, args.repeats) for form in FORMS}
+    for form, us in rows.items():
+        print(f"{form:12s} {us:8.2f} µs per step", flush=True)
+    print(f"divisions and square root: {rows['adam'] - rows['no_division']:.2f} µs per step", flush=True)
+    if args.out:
+        pathlib.Path(args.out).write_text(json.dumps({"environment": env, "args": vars(args),
+                                                      "us_per_step": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
