@@ -8,8 +8,9 @@ more slowly than multiplications and additions. This benchmark times a ``lax.sca
 each step's gradient a cheap function of the weights so that the steps stay sequential:
 
 - ``adam``: ``adam_update`` as the S-step runs it;
-- ``no_division``: the same loads and stores (θ, μ, ν read and written) with multiplications and
-  additions only, the traffic's floor.
+- ``no_division``: the same loop with multiplications and additions only: μ and ν updated as
+  Adam updates them, θ moved by μ·ν instead of Adam's quotient (θ, μ, ν read and written every
+  step, and all three returned, so that XLA keeps them in the loop).
 
 Their difference is what the divisions and the square root cost per Adam step::
 
@@ -38,8 +39,8 @@ GMR_WEIGHTS = 21_687
 """The number of GMR's network weights at the paper's sizes (``benchmarks.sstep``'s loop body)."""
 
 
-def update_loop(form: str, entries: int, steps: int, cfg: SStepConfig = SStepConfig()):
-    """A jitted ``fn(theta [entries]) -> theta`` after ``steps`` updates of ``form``."""
+def update_loop(form: str, steps: int, cfg: SStepConfig = SStepConfig()):
+    """A jitted ``fn(theta [n]) -> (theta, mu, nu)`` after ``steps`` updates of ``form``."""
     if form not in FORMS:
         raise ValueError(f"form {form!r}: choose one of {', '.join(FORMS)}")
     dtype = jnp.zeros(()).dtype
@@ -50,24 +51,26 @@ def update_loop(form: str, entries: int, steps: int, cfg: SStepConfig = SStepCon
         grad = 1e-3 * theta + 1e-4  # depends on the weights: the steps stay sequential
         if form == "adam":
             return adam_update(cfg, theta, mu, nu, grad, *corrections), None
-        return (theta - 1e-3 * grad, mu + grad, nu + 1e-3 * mu), None
+        mu = (1 - cfg.b1) * grad + cfg.b1 * mu
+        nu = (1 - cfg.b2) * grad ** 2 + cfg.b2 * nu
+        return (theta - cfg.lr * mu * nu, mu, nu), None
 
     def run(theta):
         zeros = jnp.zeros_like(theta)
-        return jax.lax.scan(body, (theta, zeros, zeros), (c1, c2))[0][0]
+        return jax.lax.scan(body, (theta, zeros, zeros), (c1, c2))[0]
 
     return jax.jit(run)
 
 
 def time_form(form: str, entries: int, steps: int, repeats: int) -> float:
     """The fastest of ``repeats`` timed runs, µs per step (after one run that compiles)."""
-    fn = update_loop(form, entries, steps)
+    fn = update_loop(form, steps)
     theta = jnp.ones(entries)
-    fn(theta).block_until_ready()
+    jax.block_until_ready(fn(theta))
     best = float("inf")
     for _ in range(repeats):
         t = time.perf_counter()
-        fn(theta).block_until_ready()
+        jax.block_until_ready(fn(theta))
         best = min(best, time.perf_counter() - t)
     return best / steps * 1e6
 
