@@ -75,18 +75,11 @@ def time_form(form: str, entries: int, steps: int, repeats: int) -> float:
     return best / steps * 1e6
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text} is not a positive integer")
-    return value
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.adam_cost", description=__doc__.split("\n\n")[0])
-    p.add_argument("--entries", type=_positive_int, default=GMR_WEIGHTS, help="weights updated (default: GMR's)")
-    p.add_argument("--steps", type=_positive_int, default=4000, help="Adam steps per timed run")
-    p.add_argument("--repeats", type=_positive_int, default=3, help="timed runs per form (the fastest counts)")
+    p.add_argument("--entries", type=cli.positive_int, default=GMR_WEIGHTS, help="weights updated (default: GMR's)")
+    p.add_argument("--steps", type=cli.positive_int, default=4000, help="Adam steps per timed run")
+    p.add_argument("--repeats", type=cli.positive_int, default=3, help="timed runs per form (the fastest counts)")
     cli.add_precision_argument(p)
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)

@@ -176,7 +176,7 @@ def parse_args(argv=None):
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
                    help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
-    p.add_argument("--batch-size", type=int, default=config.SStepConfig.batch_size,
+    p.add_argument("--batch-size", type=cli.positive_int, default=config.SStepConfig.batch_size,
                    help="rows per minibatch (default: the paper's %(default)s); with several values in "
                         "separate runs, the time per Adam step against the rows tells a step's fixed cost "
                         "from its cost per row")
@@ -212,8 +212,6 @@ def parse_args(argv=None):
                    "(trace written under DIR) and report its kernels per Adam step, their busy time and "
                    "the device's idle share (GPU only; benchmarks.trace)")
     args = p.parse_args(argv)
-    if args.batch_size < 1:
-        p.error(f"--batch-size {args.batch_size}: must be a positive integer")
     for flag, value, allowed in (("--adam-entries", args.adam_entries, config.SSTEP_ADAM_ENTRIES),
                                  ("--statistics", args.statistics, config.SSTEP_STATISTICS),
                                  ("--statistics-epochs", args.statistics_epochs, config.SSTEP_STATISTICS_EPOCHS),

@@ -48,7 +48,8 @@ def _int_at_least(low: int, what: str):
     return parse
 
 
-_positive_int = _int_at_least(1, "a positive integer")
+positive_int = _int_at_least(1, "a positive integer")
+"""argparse's ``type`` for a positive integer (the command line's and the benchmarks')."""
 _nonnegative_int = _int_at_least(0, "an integer ≥ 0")
 
 
@@ -82,7 +83,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--iterations", type=int, default=base.iterations, help="GPS iterations (default: %(default)s)")
     p.add_argument("--samples", type=int, default=base.num_samples,
                    help="samples per condition per iteration (default: %(default)s)")
-    p.add_argument("--seeds", type=_positive_int, default=1, help="seeds trained in parallel (default: 1)")
+    p.add_argument("--seeds", type=positive_int, default=1, help="seeds trained in parallel (default: 1)")
     p.add_argument("--first-seed", type=int, default=0, help="first seed (default: 0)")
     p.add_argument("--T", type=int, default=base.task.T, help="horizon (default: %(default)s)")
     p.add_argument("--backend", default="auto", choices=config.BACKENDS,
@@ -97,7 +98,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest intact checkpoints in --out (same settings; a "
                         "larger --iterations extends finished runs)")
-    p.add_argument("--checkpoint-every", type=_positive_int, default=1, metavar="N",
+    p.add_argument("--checkpoint-every", type=positive_int, default=1, metavar="N",
                    help="write the runs' checkpoints after every N-th iteration and the last (a stop "
                         "or an error writes the last finished one too; default: %(default)s). Many "
                         "seeds' checkpoints are large (about 1.6 MB per seed for GMR on A,B) and "
@@ -116,7 +117,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--jobs", type=_nonnegative_int, default=0,
                    help="runs (scenario × algorithm) trained side by side: they compile concurrently "
                         "and share the device (default 0: all of them)")
-    p.add_argument("--compile-jobs", type=_positive_int, default=DEFAULT_COMPILE_JOBS,
+    p.add_argument("--compile-jobs", type=positive_int, default=DEFAULT_COMPILE_JOBS,
                    help="programs (iterations, evaluations) compiled at once (default: %(default)s; an iteration "
                         "in parts, --iteration-programs, counts as one and compiles its parts in "
                         "parallel). XLA spreads one compilation over the cores, so more at once mostly slow "
@@ -151,7 +152,7 @@ def build_parser(task: tasks.Task, description: str | None = None) -> argparse.A
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="override a configuration field for every run, e.g. --set gmr__alpha=0.1 "
                         "or --set sstep__epochs=100 (repeatable; values are Python literals)")
-    p.add_argument("--devices", type=_positive_int, default=None,
+    p.add_argument("--devices", type=positive_int, default=None,
                    help="split the seeds over this many local devices (default: all of them; a "
                         "seed count they do not divide is padded, the padding dropped)")
     p.add_argument("--cpu-runs", default="auto", metavar="auto|none|all|SCENARIO/ALGORITHM,…",

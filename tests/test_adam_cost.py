@@ -46,7 +46,7 @@ def test_the_command_writes_both_forms(tmp_path, capsys):
 def test_bad_arguments_get_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit):
         adam_cost.main(["--steps", "0"])
-    assert "0 is not a positive integer" in capsys.readouterr().err
+    assert "--steps: must be a positive integer, got '0'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         adam_cost.main(["--out", str(tmp_path / "missing" / "a.json")])
     assert "its folder does not exist" in capsys.readouterr().err

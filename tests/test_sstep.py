@@ -686,3 +686,10 @@ def test_impl_choice_and_fallback(policy):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="impl"):
         sstep(policy, params, data, jax.random.key(1), cfg, impl="fast")
+
+
+def test_the_benchmark_refuses_a_batch_size_below_one(capsys):
+    from benchmarks import sstep as benchmark
+    with pytest.raises(SystemExit):
+        benchmark.parse_args(["--batch-size", "0"])
+    assert "--batch-size: must be a positive integer, got '0'" in capsys.readouterr().err
