@@ -25,6 +25,7 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 AXIS = "seeds"
@@ -74,8 +75,31 @@ def pad(tree, num_seeds: int, mesh: Mesh):
 
 
 def unpad(tree, num_seeds: int):
-    """Leaves [S', ...] → the real seeds' [S, ...] (no copy when nothing was padded)."""
-    return jax.tree_util.tree_map(lambda a: a if a.shape[0] == num_seeds else a[:num_seeds], tree)
+    """Leaves [S', ...] → the real seeds' [S, ...] (no copy when nothing was padded).
+
+    A leaf split over several devices comes back on its first device, copied shard by shard
+    (:func:`_real_rows`): slicing the global array would run a program over the mesh whose
+    all-gather waits in XLA's in-process rendezvous for every device."""
+    return jax.tree_util.tree_map(lambda a: a if a.shape[0] == num_seeds else _real_rows(a, num_seeds), tree)
+
+
+def _real_rows(a, num_seeds: int):
+    """The first ``num_seeds`` rows of ``a``. An array on several devices gives them on its first
+    shard's device: split along its leading axis only (as :func:`place` puts it), from
+    device-to-device copies of the shards that hold them; otherwise through the host."""
+    if not isinstance(a, jax.Array) or len(a.sharding.device_set) == 1:
+        return a[:num_seeds]
+    starts = [s.index[0].start or 0 for s in a.addressable_shards]
+    shards = [s for _, s in sorted(zip(starts, a.addressable_shards), key=lambda pair: pair[0])]
+    first = shards[0].device
+    if a.sharding.is_fully_replicated:
+        return shards[0].data[:num_seeds]
+    split_rows_only = len(set(starts)) == len(starts) and all(
+        index == slice(None) for s in shards for index in s.index[1:])
+    if not split_rows_only:
+        return jax.device_put(np.asarray(a)[:num_seeds], first)
+    return jnp.concatenate([jax.device_put(s.data[:num_seeds - start], first)
+                            for start, s in zip(sorted(starts), shards) if start < num_seeds])
 
 
 def place(tree, mesh: Mesh):

@@ -82,6 +82,32 @@ def test_uneven_seed_count_is_padded_and_the_padding_dropped(cfg, runs, four_dev
     assert meta["seeds"] == SEEDS[:3] and saved.eta.shape[0] == 3  # checkpoints hold the real seeds only
 
 
+def test_unpad_copies_the_real_seeds_onto_one_device():
+    """A padded array split over four devices comes back as its real rows on the first device,
+    for every seed count that pads (one to three rows of padding) and for the two layouts
+    :func:`sharding.place` does not make (replicated, split along another axis). Slicing the
+    global array instead gives an array on all four devices, from a program over the mesh whose
+    all-gather is a rendezvous of every device (tests/test_sharding.py's runs unpad often)."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    if len(jax.local_devices()) < 4:
+        pytest.skip("needs four devices (XLA_FLAGS=--xla_force_host_platform_device_count=4)")
+    mesh = sharding.seed_mesh(4)
+    first = {jax.local_devices()[0]}
+    for num in (1, 2, 3, 5, 6, 7):
+        rows = np.arange(num * 6, dtype=np.float64).reshape(num, 2, 3)
+        padded = sharding.place(sharding.pad(jnp.asarray(rows), num, mesh), mesh)
+        assert len(padded.sharding.device_set) == 4
+        real = sharding.unpad({"x": padded}, num)["x"]
+        assert real.sharding.device_set == first
+        np.testing.assert_array_equal(np.asarray(real), rows)
+    table = np.arange(32.0).reshape(4, 8)
+    for spec in (PartitionSpec(), PartitionSpec(None, sharding.AXIS)):
+        real = sharding.unpad(jax.device_put(table, NamedSharding(mesh, spec)), 3)
+        assert real.sharding.device_set == first
+        np.testing.assert_array_equal(np.asarray(real), table[:3])
+
+
 def test_resume_on_another_device_count(cfg, runs, four_devices, scheduler, tolerances):
     root, one, _ = runs
     runner.run(cfg, SEEDS, root / "moved", stop_after=1, scheduler=four_devices)
