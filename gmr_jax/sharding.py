@@ -78,8 +78,10 @@ def unpad(tree, num_seeds: int):
     """Leaves [S', ...] → the real seeds' [S, ...] (no copy when nothing was padded).
 
     A leaf split over several devices comes back on its first device, copied shard by shard
-    (:func:`_real_rows`): slicing the global array would run a program over the mesh whose
-    all-gather waits in XLA's in-process rendezvous for every device."""
+    (:func:`_real_rows`), with no program over the mesh. Slicing the global array is one, with
+    an all-gather; two threads that unpad at once (the runner's loop and its checkpoint writer)
+    then reach the devices in different orders, and XLA's rendezvous waits until it ends the
+    process."""
     return jax.tree_util.tree_map(lambda a: a if a.shape[0] == num_seeds else _real_rows(a, num_seeds), tree)
 
 

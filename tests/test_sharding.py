@@ -108,6 +108,47 @@ def test_unpad_copies_the_real_seeds_onto_one_device():
         np.testing.assert_array_equal(np.asarray(real), table[:3])
 
 
+_UNPAD_FROM_TWO_THREADS = textwrap.dedent("""
+    import concurrent.futures
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from gmr_jax import sharding
+    mesh = sharding.seed_mesh(4)
+    trees = [sharding.place(sharding.pad({j: jnp.arange(3.0 * (j + 1) * (i + 1)).reshape(3, -1) for j in range(30)},
+                                         3, mesh), mesh) for i in range(2)]
+    advance = jax.jit(lambda t: jax.tree.map(lambda x: jax.lax.fori_loop(0, 30, lambda _, y: jnp.tanh(y) + 0.5, x), t))
+
+    def unpad_repeatedly(tree):  # as the runner's loop (metrics) and checkpoint writer (state) do
+        want = jax.tree.map(lambda a: np.asarray(a)[:3], advance(tree))
+        for _ in range(40):
+            got = jax.tree.map(np.asarray, sharding.unpad(advance(tree), 3))
+            jax.tree.map(np.testing.assert_array_equal, got, want)
+        return True
+
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        print(all(pool.map(unpad_repeatedly, trees)))
+""")
+
+
+def test_unpad_from_two_threads_at_once_finishes():
+    """Two threads unpadding four-device arrays at once, each right after a program that makes
+    them: 2 × 40 × 30 leaves. When unpad sliced the global array, each slice was a program over
+    the mesh with an all-gather; the two threads' programs reached the devices in different
+    orders, every device waited in XLA's rendezvous for a different all-gather, and XLA ended the
+    process (1 run in 3 here, the suite's workers on the CI host too). In a process of its own, with
+    XLA's rendezvous timeout shortened to 10 s, so that the failure is quick and fails this test."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu",
+               XLA_FLAGS="--xla_force_host_platform_device_count=4 "
+                         "--xla_cpu_collective_call_terminate_timeout_seconds=10")
+    try:
+        done = subprocess.run([sys.executable, "-c", _UNPAD_FROM_TWO_THREADS], env=env, capture_output=True,
+                              text=True, timeout=600)
+    except subprocess.TimeoutExpired:
+        pytest.fail("unpadding from two threads did not finish in 600 s")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.split() == ["True"]
+
+
 def test_resume_on_another_device_count(cfg, runs, four_devices, scheduler, tolerances):
     root, one, _ = runs
     runner.run(cfg, SEEDS, root / "moved", stop_after=1, scheduler=four_devices)
