@@ -77,8 +77,8 @@ def pad(tree, num_seeds: int, mesh: Mesh):
 def unpad(tree, num_seeds: int):
     """Leaves [S', ...] → the real seeds' [S, ...] (no copy when nothing was padded).
 
-    A leaf split over several devices comes back on its first device, copied shard by shard
-    (:func:`_real_rows`), with no program over the mesh. Slicing the global array is one, with
+    A padded leaf split over several devices comes back on one device, copied shard by shard
+    (:func:`_real_rows`), with no program over the mesh; an unpadded one stays as it is. Slicing the global array is one, with
     an all-gather; two threads that unpad at once (the runner's loop and its checkpoint writer)
     then reach the devices in different orders, and XLA's rendezvous waits until it ends the
     process."""
@@ -86,22 +86,22 @@ def unpad(tree, num_seeds: int):
 
 
 def _real_rows(a, num_seeds: int):
-    """The first ``num_seeds`` rows of ``a``. An array on several devices gives them on its first
-    shard's device: split along its leading axis only (as :func:`place` puts it), from
-    device-to-device copies of the shards that hold them; otherwise through the host."""
+    """The first ``num_seeds`` rows of ``a``. An array on several devices gives them on one
+    device: split along its leading axis only (as :func:`place` puts it), from device-to-device
+    copies of the shards that hold them onto the first one's device; replicated, from its first
+    shard; in any other layout, through the host."""
     if not isinstance(a, jax.Array) or len(a.sharding.device_set) == 1:
         return a[:num_seeds]
-    starts = [s.index[0].start or 0 for s in a.addressable_shards]
-    shards = [s for _, s in sorted(zip(starts, a.addressable_shards), key=lambda pair: pair[0])]
-    first = shards[0].device
+    by_start = sorted(((s.index[0].start or 0, s) for s in a.addressable_shards), key=lambda pair: pair[0])
+    first = by_start[0][1].device
     if a.sharding.is_fully_replicated:
-        return shards[0].data[:num_seeds]
-    split_rows_only = len(set(starts)) == len(starts) and all(
-        index == slice(None) for s in shards for index in s.index[1:])
+        return by_start[0][1].data[:num_seeds]
+    split_rows_only = len({start for start, _ in by_start}) == len(by_start) and all(
+        index == slice(None) for _, s in by_start for index in s.index[1:])
     if not split_rows_only:
         return jax.device_put(np.asarray(a)[:num_seeds], first)
     return jnp.concatenate([jax.device_put(s.data[:num_seeds - start], first)
-                            for start, s in zip(sorted(starts), shards) if start < num_seeds])
+                            for start, s in by_start if start < num_seeds])
 
 
 def place(tree, mesh: Mesh):
@@ -276,7 +276,8 @@ def train(cfg, keys: jax.Array, mesh: Mesh | None = None):
     not be a multiple of the device count.
 
     Returns:
-      (final TrainState, metrics history), leaves with a leading seed axis [S, ...].
+      (final TrainState, metrics history), leaves with a leading seed axis [S, ...]: split over
+      the mesh when the device count divides S, else on the mesh's first device (:func:`unpad`).
     """
     from gmr_jax import mdgps
 

@@ -84,7 +84,7 @@ def test_uneven_seed_count_is_padded_and_the_padding_dropped(cfg, runs, four_dev
 
 def test_unpad_copies_the_real_seeds_onto_one_device():
     """A padded array split over four devices comes back as its real rows on the first device,
-    for every seed count that pads (one to three rows of padding) and for the two layouts
+    for 1–3 and 5–7 seeds (one to three rows of padding) and for the two layouts
     :func:`sharding.place` does not make (replicated, split along another axis). Slicing the
     global array instead gives an array on all four devices, from a program over the mesh whose
     all-gather is a rendezvous of every device (tests/test_sharding.py's runs unpad often)."""
@@ -135,8 +135,9 @@ def test_unpad_from_two_threads_at_once_finishes():
     them: 2 × 40 × 30 leaves. When unpad sliced the global array, each slice was a program over
     the mesh with an all-gather; the two threads' programs reached the devices in different
     orders, every device waited in XLA's rendezvous for a different all-gather, and XLA ended the
-    process (1 run in 3 here, the suite's workers on the CI host too). In a process of its own, with
-    XLA's rendezvous timeout shortened to 10 s, so that the failure is quick and fails this test."""
+    process (this test: 1 of 3 runs of that code on a 2-core host; benchmarks/RESULTS.md,
+    thirty-seventh session). In a process of its own, so that such an end fails this test and
+    not the suite, with XLA's rendezvous timeout at 10 s instead of 40 s."""
     env = dict(os.environ, JAX_PLATFORMS="cpu",
                XLA_FLAGS="--xla_force_host_platform_device_count=4 "
                          "--xla_cpu_collective_call_terminate_timeout_seconds=10")
