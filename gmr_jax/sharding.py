@@ -78,10 +78,10 @@ def unpad(tree, num_seeds: int):
     """Leaves [S', ...] → the real seeds' [S, ...] (no copy when nothing was padded).
 
     A padded leaf split over several devices comes back on one device, copied shard by shard
-    (:func:`_real_rows`), with no program over the mesh; an unpadded one stays as it is. Slicing the global array is one, with
-    an all-gather; two threads that unpad at once (the runner's loop and its checkpoint writer)
-    then reach the devices in different orders, and XLA's rendezvous waits until it ends the
-    process."""
+    (:func:`_real_rows`), with no program over the mesh; an unpadded leaf stays as it is.
+    Slicing the global array instead runs a program over the mesh with an all-gather: two
+    threads that unpad at once (the runner's loop and its checkpoint writer) then reach the
+    devices in different orders, and XLA's rendezvous waits until it ends the process."""
     return jax.tree_util.tree_map(lambda a: a if a.shape[0] == num_seeds else _real_rows(a, num_seeds), tree)
 
 
