@@ -13,6 +13,11 @@ thread block::
 
     python -m benchmarks.kernel_mlp --nets 1,3 --weights global,carry --update adam,sgd --out f.json
     python -m benchmarks.kernel_mlp --nets "" --chain 1,8,32 --mosaic-chain 1,8,32 --out chain.json
+    python -m benchmarks.kernel_mlp --nets 3 --weights carry --update adam --num-warps 8 --seeds 1,132,256
+
+``--seeds N`` runs N independent S-steps side by side (``jax.vmap`` over each seed's data, weights
+and moments, as the runner maps seeds; Pallas makes the seeds a grid axis of the one kernel, a
+thread block per seed), the floor of the one-kernel form for many seeds per GPU.
 
 ``--weights global`` keeps weights and Adam's moments in global memory (read and written every
 step, as ``gmr_kernel`` does); ``carry`` keeps them in the loop's carry (registers, or local
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import json
 import os
 import platform
@@ -248,17 +254,33 @@ def mosaic_chain_call(chain: int, steps: int, dtype):
                                 scratch_types=[plgpu.SMEM((rows, width), dtype)], compiler_params=params))
 
 
-def problem(nets: int, steps: int, update: str, dtype, rows: int = 400, seed: int = 0):
-    """Synthetic data and initial state: (idx, c1, c2, X, Y, params, moments)."""
+def problem(nets: int, steps: int, update: str, dtype, rows: int = 400, seed: int = 0, seeds: int = 1):
+    """Synthetic data and initial state: (idx, c1, c2, X, Y, params, moments). With ``seeds`` > 1,
+    X, Y, the params and moments have a leading seed axis (each seed its own data and initial
+    weights, those of ``seed`` + its index); the minibatch rows and Adam's corrections are shared."""
     rng = np.random.default_rng(seed)
-    X = jnp.asarray(rng.normal(size=(rows, WIDTHS[0])), dtype)
-    Y = jnp.asarray(np.tanh(rng.normal(size=(rows, WIDTHS[-1]))), dtype)
     idx = np.concatenate([rng.permutation(rows)[:BATCH] for _ in range(steps)]).reshape(steps, BATCH)
     idx = jnp.asarray(np.pad(idx, ((0, 0), (0, PADDED_BATCH - BATCH))), jnp.int32)  # pad rows read row 0
     c1, c2 = adam_corrections(SStepConfig(), steps, dtype)
-    params = init_weights(jax.random.key(seed), nets, dtype)
-    moments = [jnp.zeros_like(p) for p in params for _ in range(2)] if update == "adam" else []
+
+    def one(s):
+        r = np.random.default_rng(s)
+        X = jnp.asarray(r.normal(size=(rows, WIDTHS[0])), dtype)
+        Y = jnp.asarray(np.tanh(r.normal(size=(rows, WIDTHS[-1]))), dtype)
+        params = init_weights(jax.random.key(s), nets, dtype)
+        moments = [jnp.zeros_like(p) for p in params for _ in range(2)] if update == "adam" else []
+        return X, Y, params, moments
+
+    if seeds == 1:
+        return (idx, c1, c2, *one(seed))
+    X, Y, params, moments = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[one(seed + s) for s in range(seeds)])
     return idx, c1, c2, X, Y, params, moments
+
+
+def over_seeds(fn, seeds: int):
+    """``fn`` (a kernel_call or reference_call) for ``problem(…, seeds=seeds)``'s arguments:
+    itself for one seed, else mapped over the leading seed axis of X, Y, the params and moments."""
+    return fn if seeds == 1 else jax.vmap(fn, in_axes=(None, None, None, 0, 0, 0, 0))
 
 
 def relative_difference(a, b) -> float:
@@ -269,9 +291,11 @@ def relative_difference(a, b) -> float:
 
 def first_divergence(loss, ref, rtol: float = 1e-5) -> int | None:
     """The first step whose loss differs from the reference's by more than ``rtol`` relative
-    (None if none does): where two runs of the same steps part."""
+    (None if none does): where two runs of the same steps part. Losses [..., steps]: the first
+    step at which any of the leading axes' runs (seeds) part."""
     loss, ref = np.asarray(loss), np.asarray(ref)
-    bad = np.flatnonzero(np.abs(loss - ref) > rtol * np.abs(ref))
+    differs = np.abs(loss - ref) > rtol * np.abs(ref)
+    bad = np.flatnonzero(differs.reshape(-1, differs.shape[-1]).any(axis=0))
     return int(bad[0]) if len(bad) else None
 
 
@@ -280,40 +304,42 @@ def _split(text: str) -> list[str]:
 
 
 def time_kernels(args, dtype, interpret: bool) -> list[dict]:
-    """Every (nets, update) with its XLA reference and every (weights, warps, dot) kernel of it."""
+    """Every (nets, update, seeds) with its XLA reference and every (weights, warps, dot) kernel of it."""
     rows = []
-    for nets in [int(n) for n in _split(args.nets)]:
-        for update in _split(args.update):
-            prob = problem(nets, args.steps, update, dtype)
-            _, ref_s, _, ref_out = timed(reference_call(nets, args.steps, update, dtype), prob, args.repeats)
-            n_params = 6 * nets
-            rows.append({"form": "reference", "nets": nets, "update": update,
-                         "us_per_step": 1e6 * ref_s / args.steps})
-            print(f"nets {nets} {update:4s} reference (XLA)            : "
-                  f"{rows[-1]['us_per_step']:8.2f} µs/step", flush=True)
-            for weights in _split(args.weights):
-                for warps in [int(w) for w in _split(args.num_warps)]:
-                    for dot in _split(args.dot):
-                        row = {"form": "kernel", "nets": nets, "update": update, "weights": weights,
-                               "num_warps": warps, "dot": dot}
-                        fn = kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret)
-                        try:
-                            _, s, first_s, out = timed(fn, prob, args.repeats)
-                        except Exception as e:  # noqa: BLE001 (a configuration Triton rejects is a result)
-                            print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot}: failed: "
-                                  f"{type(e).__name__}: {str(e).splitlines()[0][:200]}", flush=True)
-                            rows.append({**row, "error": str(e)[:2000]})
-                            continue
-                        diff = relative_difference(out[:n_params], ref_out[:n_params])
-                        row.update({"us_per_step": 1e6 * s / args.steps, "first_call_s": first_s,
-                                    "max_rel_diff_vs_reference": diff,
-                                    "max_loss_diff_vs_reference": float(np.max(np.abs(
-                                        np.asarray(out[-1]) - np.asarray(ref_out[-1])))),
-                                    "first_step_loss_differs": first_divergence(out[-1], ref_out[-1])})
-                        rows.append(row)
-                        print(f"nets {nets} {update:4s} kernel {weights:6s} {warps} warps {dot:6s}: "
-                              f"{row['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}, losses part "
-                              f"at step {row['first_step_loss_differs']}", flush=True)
+    for nets, update, seeds in itertools.product([int(n) for n in _split(args.nets)], _split(args.update),
+                                                 [int(n) for n in _split(args.seeds)]):
+        prob = problem(nets, args.steps, update, dtype, seeds=seeds)
+        _, ref_s, _, ref_out = timed(over_seeds(reference_call(nets, args.steps, update, dtype), seeds),
+                                     prob, args.repeats)
+        n_params = 6 * nets
+        rows.append({"form": "reference", "nets": nets, "update": update, "seeds": seeds,
+                     "us_per_step": 1e6 * ref_s / args.steps})
+        print(f"nets {nets} {update:4s} seeds {seeds:3d} reference (XLA)            : "
+              f"{rows[-1]['us_per_step']:8.2f} µs/step", flush=True)
+        for weights in _split(args.weights):
+            for warps in [int(w) for w in _split(args.num_warps)]:
+                for dot in _split(args.dot):
+                    row = {"form": "kernel", "nets": nets, "update": update, "seeds": seeds,
+                           "weights": weights, "num_warps": warps, "dot": dot}
+                    fn = over_seeds(kernel_call(nets, args.steps, weights, update, warps, dot,
+                                                jnp.dtype(dtype), interpret), seeds)
+                    try:
+                        _, s, first_s, out = timed(fn, prob, args.repeats)
+                    except Exception as e:  # noqa: BLE001 (a configuration Triton rejects is a result)
+                        print(f"nets {nets} {update:4s} seeds {seeds:3d} kernel {weights:6s} {warps} warps {dot}: "
+                              f"failed: {type(e).__name__}: {str(e).splitlines()[0][:200]}", flush=True)
+                        rows.append({**row, "error": str(e)[:2000]})
+                        continue
+                    diff = relative_difference(out[:n_params], ref_out[:n_params])
+                    row.update({"us_per_step": 1e6 * s / args.steps, "first_call_s": first_s,
+                                "max_rel_diff_vs_reference": diff,
+                                "max_loss_diff_vs_reference": float(np.max(np.abs(
+                                    np.asarray(out[-1]) - np.asarray(ref_out[-1])))),
+                                "first_step_loss_differs": first_divergence(out[-1], ref_out[-1])})
+                    rows.append(row)
+                    print(f"nets {nets} {update:4s} seeds {seeds:3d} kernel {weights:6s} {warps} warps {dot:6s}: "
+                          f"{row['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}, losses part "
+                          f"at step {row['first_step_loss_differs']}", flush=True)
     return rows
 
 
@@ -380,6 +406,8 @@ def main(argv=None) -> int:
                    "that many dependent products per loop iteration (the in-kernel cost of one product)")
     p.add_argument("--mosaic-chain", default="", help="comma-separated chain lengths: the chain kernel in "
                    "Pallas's Mosaic GPU backend as well (bfloat16 products with register operands; GPU only)")
+    p.add_argument("--seeds", default="1", help="comma-separated numbers of independent S-steps side by "
+                   "side (one thread block each, in one launch)")
     p.add_argument("--steps", type=int, default=2000, help="Adam steps per launch")
     p.add_argument("--repeats", type=int, default=3, help="timed calls (median)")
     p.add_argument("--out", help="write the results as JSON to this file")

@@ -21,21 +21,16 @@ def _flat(arrays):
     return np.concatenate([np.ravel(np.asarray(a)) for a in arrays])
 
 
-@pytest.mark.parametrize("weights", ["global", "carry"])
-@pytest.mark.parametrize("update", ["sgd", "adam"])
-def test_kernel_steps_equal_the_xla_steps(weights, update):
-    nets, n = 2, 12
-    prob = kernel_mlp.problem(nets, STEPS, update, jnp.float32, rows=60)
-    ref = kernel_mlp.reference_call(nets, STEPS, update, jnp.float32)(*prob)
-    # off a GPU the kernel runs in the interpreter with IEEE products whatever ``dot`` says
-    out = kernel_mlp.kernel_call(nets, STEPS, weights, update, 4, "ieee", jnp.dtype(jnp.float32), True)(*prob)
+def _assert_same_steps(out, ref, W_init, update, n):
+    """``out`` and ``ref`` (params…, moments…, losses) are the same ``STEPS`` minibatch steps from
+    the initial weights ``W_init``, to round-off."""
     assert len(out) == len(ref) == n + (2 * n if update == "adam" else 0) + 1
     # Round-off of one step's gradient: the longest chain is five dependent products (three
     # forward, two back), each a sum of at most 64 float32 terms, so each gradient entry is within
     # 5·64 roundings of the other form's; an update adds lr·g, far below |W|, so the weights' and
     # the moments' relative difference grows by at most that per step.
     roundoff = STEPS * 5 * 64 * EPS32
-    W_out, W_ref, W_init = _flat(out[:n]), _flat(ref[:n]), _flat(prob[5])
+    W_out, W_ref, W_init = _flat(out[:n]), _flat(ref[:n]), _flat(W_init)
     scale = np.max(np.abs(W_ref))
     if update == "sgd":
         assert np.max(np.abs(W_out - W_ref)) <= roundoff * scale
@@ -59,6 +54,17 @@ def test_kernel_steps_equal_the_xla_steps(weights, update):
     assert moved >= 10 * roundoff * scale
     # the losses before each step: the same forward passes
     np.testing.assert_allclose(np.asarray(out[-1]), np.asarray(ref[-1]), rtol=roundoff)
+
+
+@pytest.mark.parametrize("weights", ["global", "carry"])
+@pytest.mark.parametrize("update", ["sgd", "adam"])
+def test_kernel_steps_equal_the_xla_steps(weights, update):
+    nets, n = 2, 12
+    prob = kernel_mlp.problem(nets, STEPS, update, jnp.float32, rows=60)
+    ref = kernel_mlp.reference_call(nets, STEPS, update, jnp.float32)(*prob)
+    # off a GPU the kernel runs in the interpreter with IEEE products whatever ``dot`` says
+    out = kernel_mlp.kernel_call(nets, STEPS, weights, update, 4, "ieee", jnp.dtype(jnp.float32), True)(*prob)
+    _assert_same_steps(out, ref, prob[5], update, n)
 
 
 def test_kernel_rejects_an_unknown_product_form():
@@ -106,3 +112,20 @@ def test_the_command_off_a_gpu_checks_and_skips_the_mosaic_chain(tmp_path, capsy
     assert len(kernel) == 1 and kernel[0]["max_rel_diff_vs_reference"] <= 3 * 5 * 64 * EPS32
     assert kernel[0]["first_step_loss_differs"] is None
     assert [c["chain"] for c in rec["chains"]] == [1, 2] and rec["mosaic_chains"] == []
+
+
+def test_seeds_side_by_side_are_the_separate_seeds():
+    """``--seeds``: the kernel mapped over seeds (a grid axis of one launch) computes, per seed, what
+    that seed's problem computes alone; the seeds' data and weights differ."""
+    nets, seeds, update = 1, 3, "adam"
+    n = 6 * nets
+    prob = kernel_mlp.problem(nets, STEPS, update, jnp.float32, rows=60, seeds=seeds)
+    call = kernel_mlp.kernel_call(nets, STEPS, "carry", update, 4, "ieee", jnp.dtype(jnp.float32), True)
+    out = kernel_mlp.over_seeds(call, seeds)(*prob)
+    assert np.asarray(out[0]).shape[0] == seeds
+    for s in range(seeds):
+        # the seed alone: its own data and weights, the shared minibatch rows
+        alone = kernel_mlp.problem(nets, STEPS, update, jnp.float32, rows=60, seed=s)
+        _assert_same_steps([np.asarray(a)[s] for a in out], call(prob[0], *alone[1:]), alone[5], update, n)
+    # the seeds differ: different data and initial weights give different trained weights
+    assert not np.allclose(_flat([np.asarray(w)[0] for w in out[:n]]), _flat([np.asarray(w)[1] for w in out[:n]]))
