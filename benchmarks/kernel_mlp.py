@@ -17,7 +17,10 @@ thread block::
 
 ``--seeds N`` runs N independent S-steps side by side (``jax.vmap`` over each seed's data, weights
 and moments, as the runner maps seeds; Pallas makes the seeds a grid axis of the one kernel, a
-thread block per seed), the floor of the one-kernel form for many seeds per GPU.
+thread block per seed), the floor of the one-kernel form for many seeds per GPU. Its rows add the
+differences per seed (a few seeds of this synthetic problem amplify round-off over the steps,
+whichever two forms are compared) and check that seed 0 and the most different seed equal, bit
+for bit, the same kernel run for that seed alone.
 
 ``--weights global`` keeps weights and Adam's moments in global memory (read and written every
 step, as ``gmr_kernel`` does); ``carry`` keeps them in the loop's carry (registers, or local
@@ -289,6 +292,31 @@ def relative_difference(a, b) -> float:
     return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
 
 
+def per_seed_differences(out, ref, n_params: int, seeds: int) -> dict:
+    """For outputs with a leading seed axis: each seed's ``relative_difference`` of the params,
+    their median over seeds, how many exceed 1e-4, and how many seeds' losses part
+    (``first_divergence``); a few seeds can amplify round-off (Adam moves a weight whose gradient
+    is near zero by about ±lr whatever its sign), the median says whether most agree."""
+    per_seed = [relative_difference([np.asarray(a)[s] for a in out[:n_params]],
+                                    [np.asarray(b)[s] for b in ref[:n_params]]) for s in range(seeds)]
+    parted = [first_divergence(np.asarray(out[-1])[s], np.asarray(ref[-1])[s]) for s in range(seeds)]
+    return {"median_rel_diff_over_seeds": float(np.median(per_seed)),
+            "seeds_rel_diff_above_1e-4": int(np.sum(np.asarray(per_seed) > 1e-4)),
+            "seeds_whose_losses_part": int(sum(p is not None for p in parted)),
+            "seed_of_largest_rel_diff": int(np.argmax(per_seed))}
+
+
+def equals_each_seed_alone(fn, prob, out, nets: int, steps: int, update: str, dtype, seeds) -> bool:
+    """Whether ``out`` (``fn`` mapped over ``prob``'s seeds) holds, bit for bit, what ``fn`` computes
+    for each of ``seeds`` alone (its own data and weights, the shared minibatch rows): the seeds
+    of one launch do not disturb one another."""
+    for s in seeds:
+        alone = fn(prob[0], *problem(nets, steps, update, dtype, seed=s)[1:])
+        if any(not np.array_equal(np.asarray(a)[s], np.asarray(b)) for a, b in zip(out, alone)):
+            return False
+    return True
+
+
 def first_divergence(loss, ref, rtol: float = 1e-5) -> int | None:
     """The first step whose loss differs from the reference's by more than ``rtol`` relative
     (None if none does): where two runs of the same steps part. Losses [..., steps]: the first
@@ -336,10 +364,22 @@ def time_kernels(args, dtype, interpret: bool) -> list[dict]:
                                 "max_loss_diff_vs_reference": float(np.max(np.abs(
                                     np.asarray(out[-1]) - np.asarray(ref_out[-1])))),
                                 "first_step_loss_differs": first_divergence(out[-1], ref_out[-1])})
+                    if seeds > 1:
+                        row.update(per_seed_differences(out, ref_out, n_params, seeds))
+                        row["seeds_checked_alone"] = sorted({0, row["seed_of_largest_rel_diff"]})
+                        row["equal_to_each_seed_alone"] = equals_each_seed_alone(
+                            kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret),
+                            prob, out, nets, args.steps, update, dtype, row["seeds_checked_alone"])
                     rows.append(row)
                     print(f"nets {nets} {update:4s} seeds {seeds:3d} kernel {weights:6s} {warps} warps {dot:6s}: "
                           f"{row['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}, losses part "
-                          f"at step {row['first_step_loss_differs']}", flush=True)
+                          f"at step {row['first_step_loss_differs']}"
+                          + (f"; median over seeds {row['median_rel_diff_over_seeds']:.1e}, "
+                             f"{row['seeds_rel_diff_above_1e-4']} seeds above 1e-4, "
+                             f"{row['seeds_whose_losses_part']} seeds' losses part; seeds "
+                             f"{row['seeds_checked_alone']} equal to the seed alone: {row['equal_to_each_seed_alone']}"
+                             if seeds > 1 else ""),
+                          flush=True)
     return rows
 
 

@@ -6,6 +6,8 @@ the backward pass written out, weights in global memory or in the loop's carry, 
 dependent products.
 """
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -89,7 +91,6 @@ def test_chain_kernel_is_the_chain_of_products():
 def test_the_command_off_a_gpu_checks_and_skips_the_mosaic_chain(tmp_path, capsys, monkeypatch):
     """Off a GPU: the Triton kernels run in the interpreter, the Mosaic ones are skipped in one line,
     and the JSON records every row with its comparison against the XLA steps."""
-    import json
     import os
 
     import jax
@@ -129,3 +130,15 @@ def test_seeds_side_by_side_are_the_separate_seeds():
         _assert_same_steps([np.asarray(a)[s] for a in out], call(prob[0], *alone[1:]), alone[5], update, n)
     # the seeds differ: different data and initial weights give different trained weights
     assert not np.allclose(_flat([np.asarray(w)[0] for w in out[:n]]), _flat([np.asarray(w)[1] for w in out[:n]]))
+
+
+def test_the_command_checks_many_seeds_against_each_seed_alone(tmp_path):
+    out = tmp_path / "k.json"
+    assert kernel_mlp.main(["--nets", "1", "--weights", "carry", "--update", "sgd", "--num-warps", "4",
+                            "--dot", "ieee", "--seeds", "3", "--steps", "2", "--repeats", "1",
+                            "--out", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    kernel = [r for r in rec["rows"] if r["form"] == "kernel"]
+    assert len(kernel) == 1 and kernel[0]["seeds"] == 3
+    assert kernel[0]["equal_to_each_seed_alone"] is True and 0 in kernel[0]["seeds_checked_alone"]
+    assert kernel[0]["seeds_rel_diff_above_1e-4"] == 0
