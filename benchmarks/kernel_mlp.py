@@ -18,9 +18,10 @@ thread block::
 ``--seeds N`` runs N independent S-steps side by side (``jax.vmap`` over each seed's data, weights
 and moments, as the runner maps seeds; Pallas makes the seeds a grid axis of the one kernel, a
 thread block per seed), the floor of the one-kernel form for many seeds per GPU. Its rows add the
-differences per seed (a few seeds of this synthetic problem amplify round-off over the steps,
-whichever two forms are compared) and check that seed 0 and the most different seed equal, bit
-for bit, the same kernel run for that seed alone.
+differences per seed from the XLA steps mapped the same way (many seeds of this synthetic problem
+amplify round-off over the steps, whichever two forms are compared, the XLA steps for many seeds
+and for one included) and how far seed 0 and the most different seed lie from the same kernel run
+for that seed alone (0 when they are the same bits).
 
 ``--weights global`` keeps weights and Adam's moments in global memory (read and written every
 step, as ``gmr_kernel`` does); ``carry`` keeps them in the loop's carry (registers, or local
@@ -259,25 +260,33 @@ def mosaic_chain_call(chain: int, steps: int, dtype):
 
 def problem(nets: int, steps: int, update: str, dtype, rows: int = 400, seed: int = 0, seeds: int = 1):
     """Synthetic data and initial state: (idx, c1, c2, X, Y, params, moments). With ``seeds`` > 1,
-    X, Y, the params and moments have a leading seed axis (each seed its own data and initial
-    weights, those of ``seed`` + its index); the minibatch rows and Adam's corrections are shared."""
+    X, Y, the params and moments have a leading seed axis, seed i's those of ``problem(…,
+    seed=seed + i)``; the minibatch rows (``seed``'s) and Adam's corrections are shared."""
     rng = np.random.default_rng(seed)
-    idx = np.concatenate([rng.permutation(rows)[:BATCH] for _ in range(steps)]).reshape(steps, BATCH)
-    idx = jnp.asarray(np.pad(idx, ((0, 0), (0, PADDED_BATCH - BATCH))), jnp.int32)  # pad rows read row 0
-    c1, c2 = adam_corrections(SStepConfig(), steps, dtype)
 
-    def one(s):
-        r = np.random.default_rng(s)
+    def one(r, s):
         X = jnp.asarray(r.normal(size=(rows, WIDTHS[0])), dtype)
         Y = jnp.asarray(np.tanh(r.normal(size=(rows, WIDTHS[-1]))), dtype)
         params = init_weights(jax.random.key(s), nets, dtype)
         moments = [jnp.zeros_like(p) for p in params for _ in range(2)] if update == "adam" else []
         return X, Y, params, moments
 
+    first = one(rng, seed)  # drawn before the rows, from the same generator (as with one seed before)
+    idx = np.concatenate([rng.permutation(rows)[:BATCH] for _ in range(steps)]).reshape(steps, BATCH)
+    idx = jnp.asarray(np.pad(idx, ((0, 0), (0, PADDED_BATCH - BATCH))), jnp.int32)  # pad rows read row 0
+    c1, c2 = adam_corrections(SStepConfig(), steps, dtype)
     if seeds == 1:
-        return (idx, c1, c2, *one(seed))
-    X, Y, params, moments = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[one(seed + s) for s in range(seeds)])
+        return (idx, c1, c2, *first)
+    others = [one(np.random.default_rng(seed + s), seed + s) for s in range(1, seeds)]
+    X, Y, params, moments = jax.tree_util.tree_map(lambda *a: jnp.stack(a), first, *others)
     return idx, c1, c2, X, Y, params, moments
+
+
+def seed_of(prob, s: int):
+    """Seed ``s``'s arguments from ``problem(…, seeds=N)``'s: the shared rows and corrections with its
+    own X, Y, params and moments (``problem(…, seed=s)``'s, with the shared rows)."""
+    idx, c1, c2, *per_seed = prob
+    return (idx, c1, c2, *jax.tree_util.tree_map(lambda a: a[s], per_seed))
 
 
 def over_seeds(fn, seeds: int):
@@ -295,8 +304,8 @@ def relative_difference(a, b) -> float:
 def per_seed_differences(out, ref, n_params: int, seeds: int) -> dict:
     """For outputs with a leading seed axis: each seed's ``relative_difference`` of the params,
     their median over seeds, how many exceed 1e-4, and how many seeds' losses part
-    (``first_divergence``); a few seeds can amplify round-off (Adam moves a weight whose gradient
-    is near zero by about ±lr whatever its sign), the median says whether most agree."""
+    (``first_divergence``); seeds can amplify round-off (Adam moves a weight whose gradient is near
+    zero by about ±lr whatever its sign), the median says whether most agree."""
     per_seed = [relative_difference([np.asarray(a)[s] for a in out[:n_params]],
                                     [np.asarray(b)[s] for b in ref[:n_params]]) for s in range(seeds)]
     parted = [first_divergence(np.asarray(out[-1])[s], np.asarray(ref[-1])[s]) for s in range(seeds)]
@@ -306,15 +315,12 @@ def per_seed_differences(out, ref, n_params: int, seeds: int) -> dict:
             "seed_of_largest_rel_diff": int(np.argmax(per_seed))}
 
 
-def equals_each_seed_alone(fn, prob, out, nets: int, steps: int, update: str, dtype, seeds) -> bool:
-    """Whether ``out`` (``fn`` mapped over ``prob``'s seeds) holds, bit for bit, what ``fn`` computes
-    for each of ``seeds`` alone (its own data and weights, the shared minibatch rows): the seeds
-    of one launch do not disturb one another."""
-    for s in seeds:
-        alone = fn(prob[0], *problem(nets, steps, update, dtype, seed=s)[1:])
-        if any(not np.array_equal(np.asarray(a)[s], np.asarray(b)) for a, b in zip(out, alone)):
-            return False
-    return True
+def difference_from_each_seed_alone(fn, prob, out, seeds) -> float:
+    """The largest ``relative_difference`` (over every output: params, moments, losses) between
+    ``out`` (``fn`` mapped over ``prob``'s seeds) and ``fn`` run for each of ``seeds`` alone: 0 when
+    the seeds of one launch compute exactly what each computes alone."""
+    return max(relative_difference([np.asarray(a)[s] for a in out], list(fn(*seed_of(prob, s))))
+               for s in seeds)
 
 
 def first_divergence(loss, ref, rtol: float = 1e-5) -> int | None:
@@ -367,9 +373,9 @@ def time_kernels(args, dtype, interpret: bool) -> list[dict]:
                     if seeds > 1:
                         row.update(per_seed_differences(out, ref_out, n_params, seeds))
                         row["seeds_checked_alone"] = sorted({0, row["seed_of_largest_rel_diff"]})
-                        row["equal_to_each_seed_alone"] = equals_each_seed_alone(
+                        row["max_rel_diff_from_the_seeds_alone"] = difference_from_each_seed_alone(
                             kernel_call(nets, args.steps, weights, update, warps, dot, jnp.dtype(dtype), interpret),
-                            prob, out, nets, args.steps, update, dtype, row["seeds_checked_alone"])
+                            prob, out, row["seeds_checked_alone"])
                     rows.append(row)
                     print(f"nets {nets} {update:4s} seeds {seeds:3d} kernel {weights:6s} {warps} warps {dot:6s}: "
                           f"{row['us_per_step']:8.2f} µs/step, weights vs reference {diff:.1e}, losses part "
@@ -377,7 +383,8 @@ def time_kernels(args, dtype, interpret: bool) -> list[dict]:
                           + (f"; median over seeds {row['median_rel_diff_over_seeds']:.1e}, "
                              f"{row['seeds_rel_diff_above_1e-4']} seeds above 1e-4, "
                              f"{row['seeds_whose_losses_part']} seeds' losses part; seeds "
-                             f"{row['seeds_checked_alone']} equal to the seed alone: {row['equal_to_each_seed_alone']}"
+                             f"{row['seeds_checked_alone']} against the seed alone: "
+                             f"{row['max_rel_diff_from_the_seeds_alone']:.1e}"
                              if seeds > 1 else ""),
                           flush=True)
     return rows
