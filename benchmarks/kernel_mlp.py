@@ -51,6 +51,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 from benchmarks.rollout import timed
+from benchmarks.sstep import per_seed_relative_differences
 from experiments import cli
 from gmr_jax.adam import adam_corrections, adam_update
 from gmr_jax.config import SStepConfig
@@ -306,9 +307,12 @@ def per_seed_differences(out, ref, n_params: int, seeds: int) -> dict:
     their median over seeds, how many exceed 1e-4, and how many seeds' losses part
     (``first_divergence``); seeds can amplify round-off (Adam moves a weight whose gradient is near
     zero by about ±lr whatever its sign), the median says whether most agree."""
-    per_seed = [relative_difference([np.asarray(a)[s] for a in out[:n_params]],
-                                    [np.asarray(b)[s] for b in ref[:n_params]]) for s in range(seeds)]
-    parted = [first_divergence(np.asarray(out[-1])[s], np.asarray(ref[-1])[s]) for s in range(seeds)]
+    def by_seed(arrays):  # [seeds, n]: each seed's params as one row, one copy to the host
+        return np.concatenate([np.asarray(a).reshape(seeds, -1) for a in arrays], axis=1)
+
+    per_seed = np.asarray(per_seed_relative_differences(by_seed(out[:n_params]), by_seed(ref[:n_params])))
+    loss, ref_loss = np.asarray(out[-1]), np.asarray(ref[-1])
+    parted = [first_divergence(loss[s], ref_loss[s]) for s in range(seeds)]
     return {"median_rel_diff_over_seeds": float(np.median(per_seed)),
             "seeds_rel_diff_above_1e-4": int(np.sum(np.asarray(per_seed) > 1e-4)),
             "seeds_whose_losses_part": int(sum(p is not None for p in parted)),
@@ -319,8 +323,8 @@ def difference_from_each_seed_alone(fn, prob, out, seeds) -> float:
     """The largest ``relative_difference`` (over every output: params, moments, losses) between
     ``out`` (``fn`` mapped over ``prob``'s seeds) and ``fn`` run for each of ``seeds`` alone: 0 when
     the seeds of one launch compute exactly what each computes alone."""
-    return max(relative_difference([np.asarray(a)[s] for a in out], list(fn(*seed_of(prob, s))))
-               for s in seeds)
+    out = [np.asarray(a) for a in out]
+    return max(relative_difference([a[s] for a in out], list(fn(*seed_of(prob, s)))) for s in seeds)
 
 
 def first_divergence(loss, ref, rtol: float = 1e-5) -> int | None:

@@ -380,11 +380,17 @@ def _flat_weights(net, seeds: int) -> jax.Array:
     return ravel_pytree(net)[0][None] if seeds == 1 else jax.vmap(lambda n: ravel_pytree(n)[0])(net)
 
 
-def _relative_differences(weights, reference) -> dict:
-    """Per seed, max |weights − reference| / max |reference| ([seeds, n] each, computed in the
-    reference's dtype): the largest and the median over seeds, and the count of seeds above 1e-4."""
+def per_seed_relative_differences(weights, reference):
+    """[seeds]: each seed's max |weights − reference| / max |reference| ([seeds, n] each, computed in
+    the reference's dtype)."""
     weights = weights.astype(reference.dtype)
-    per_seed = jnp.max(jnp.abs(weights - reference), axis=1) / jnp.max(jnp.abs(reference), axis=1)
+    return jnp.max(jnp.abs(weights - reference), axis=1) / jnp.max(jnp.abs(reference), axis=1)
+
+
+def _relative_differences(weights, reference) -> dict:
+    """``per_seed_relative_differences``: the largest and the median over seeds, and the count of
+    seeds above 1e-4."""
+    per_seed = per_seed_relative_differences(weights, reference)
     return {"max_rel_diff": float(jnp.max(per_seed)), "median_rel_diff": float(jnp.median(per_seed)),
             "seeds_rel_diff_above_1e-4": int(jnp.sum(per_seed > 1e-4))}
 
