@@ -1,7 +1,7 @@
 // The floor of a hand-written CUDA S-step: dependent products and a grid-wide Adam update.
 //
 // Built and run by benchmarks/kernel_cuda.py (nvcc for the GPU at hand); prints one JSON object
-// per line. Three kinds of kernels, each checked against a double-precision host reference
+// per line. Four kinds of kernels, each checked against a double-precision host reference
 // before it is timed:
 //
 //   chain_fma   one thread block of 256 threads; the loop body is `chain` dependent products
@@ -20,6 +20,8 @@
 //               that forms the step's products would), grid sync, every block updates its slice
 //               of (w, m, v) in global memory, grid sync (16-byte loads and stores throughout). Mode "sync" keeps the two syncs alone,
 //               mode "block" does the whole update in one block (no grid, no sync).
+//   seed_steps  many seeds, one thread block each: per step the tf32x3 chain on weight slots held
+//               in shared memory, then Adam over the seed's weights (moments in global memory).
 
 #include <cooperative_groups.h>
 #include <cuda_runtime.h>
@@ -115,12 +117,100 @@ __device__ __forceinline__ void mma_tf32(float (&d)[4], const uint32_t (&a)[4], 
       : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
 }
 
+// The B fragments of k-step kk and n-tile nn: hi, and (tf32x3) lo, as mma.sync takes them.
+struct BFragment {
+  uint2 hi, lo;
+};
+
+// The TF32 split of two weights into the B fragments' hi and lo parts.
+__device__ __forceinline__ BFragment split_b(float v0, float v1) {
+  const uint32_t h0b = to_tf32(v0), h1b = to_tf32(v1);
+  return {make_uint2(h0b, h1b), make_uint2(to_tf32(v0 - __uint_as_float(h0b)), to_tf32(v1 - __uint_as_float(h1b)))};
+}
+
+// `chain` dependent products frag <- leaky(frag W_c) of one warp's share of one 16-row tile, on the
+// tensor cores; fetch(c, kk, nn) gives W_c's B fragment (kk, nn) for this lane. With NSPLIT > 1 the
+// warps of a row tile exchange their output fragments through X (double-buffered; `buf` flips) at
+// named barrier 1 + mtile.
 // ACCS = 3 (with PASSES = 3): each pass into an accumulator of its own, added at the end, so that
 // an accumulator's chain of dependent mma.sync is 8 long instead of 24.
+template <int PASSES, int NSPLIT, int ACCS, class Fetch>
+__device__ __forceinline__ void product_chain(float4 (&frag)[8], float4 (*X)[2][8][32], int& buf, int mtile,
+                                              int part, int lane, int chain, const Fetch& fetch) {
+  constexpr int NT = 8 / NSPLIT;  // n-tiles per warp
+  static_assert(ACCS == 1 || (ACCS == 3 && PASSES == 3), "one accumulator, or one per pass of three");
+  float acc[ACCS][NT][4];
+  for (int c = 0; c < chain; ++c) {
+#pragma unroll
+    for (int a = 0; a < ACCS; ++a)
+#pragma unroll
+      for (int j = 0; j < NT; ++j) acc[a][j][0] = acc[a][j][1] = acc[a][j][2] = acc[a][j][3] = 0.f;
+#pragma unroll
+    for (int kk = 0; kk < 8; ++kk) {
+      const float4 f = frag[kk];
+      const uint32_t ahi[4] = {to_tf32(f.x), to_tf32(f.y), to_tf32(f.z), to_tf32(f.w)};
+      uint32_t alo[4];
+      if (PASSES == 3) {
+        alo[0] = to_tf32(f.x - __uint_as_float(ahi[0]));
+        alo[1] = to_tf32(f.y - __uint_as_float(ahi[1]));
+        alo[2] = to_tf32(f.z - __uint_as_float(ahi[2]));
+        alo[3] = to_tf32(f.w - __uint_as_float(ahi[3]));
+      }
+#pragma unroll
+      for (int j = 0; j < NT; ++j) {
+        const BFragment b = fetch(c, kk, part * NT + j);
+        if (PASSES == 3) {
+          mma_tf32(acc[0][j], alo, b.hi.x, b.hi.y);
+          mma_tf32(acc[ACCS == 3 ? 1 : 0][j], ahi, b.lo.x, b.lo.y);
+        }
+        mma_tf32(acc[ACCS == 3 ? 2 : 0][j], ahi, b.hi.x, b.hi.y);
+      }
+    }
+    if (ACCS == 3) {
+#pragma unroll
+      for (int j = 0; j < NT; ++j)
+#pragma unroll
+        for (int e = 0; e < 4; ++e) acc[0][j][e] = (acc[0][j][e] + acc[1 % ACCS][j][e]) + acc[2 % ACCS][j][e];
+    }
+    if (NSPLIT == 1) {
+#pragma unroll
+      for (int j = 0; j < NT; ++j)
+        frag[j] = make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
+    } else {
+#pragma unroll
+      for (int j = 0; j < NT; ++j)
+        X[buf][mtile][part * NT + j][lane] =
+            make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
+      asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(32 * NSPLIT) : "memory");
+#pragma unroll
+      for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
+      buf ^= 1;
+    }
+  }
+}
+
+// A warp's rows' A fragments for all 8 k-steps from h [ROWS, WIDTH] (row-major), and back.
+__device__ __forceinline__ void load_fragments(float4 (&frag)[8], const float* __restrict__ h, int r0, int t) {
+#pragma unroll
+  for (int kk = 0; kk < 8; ++kk)
+    frag[kk] = make_float4(h[r0 * WIDTH + 8 * kk + 2 * t], h[(r0 + 8) * WIDTH + 8 * kk + 2 * t],
+                           h[r0 * WIDTH + 8 * kk + 2 * t + 1], h[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1]);
+}
+
+// the last product's output: frag[kk] = (c0, c2, c1, c3) of n-tile kk
+__device__ __forceinline__ void store_fragments(const float4 (&frag)[8], float* __restrict__ out, int r0, int t) {
+#pragma unroll
+  for (int kk = 0; kk < 8; ++kk) {
+    out[r0 * WIDTH + 8 * kk + 2 * t] = frag[kk].x;
+    out[r0 * WIDTH + 8 * kk + 2 * t + 1] = frag[kk].z;
+    out[(r0 + 8) * WIDTH + 8 * kk + 2 * t] = frag[kk].y;
+    out[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1] = frag[kk].w;
+  }
+}
+
 template <int PASSES, int NSPLIT, int ACCS>
 __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict__ h0, const float* __restrict__ w,
                                                          float* __restrict__ out, int steps, int chain) {
-  constexpr int NT = 8 / NSPLIT;  // n-tiles per warp
   // B fragments (hi, lo) per (kk, nn, lane): (b0, b1)
   __shared__ __align__(16) uint2 Bhi[8][8][32];
   __shared__ __align__(16) uint2 Blo[PASSES == 3 ? 8 : 1][8][32];
@@ -131,90 +221,28 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
   const int mtile = warp / NSPLIT, part = warp % NSPLIT;
   for (int i = threadIdx.x; i < 8 * 8 * 32; i += blockDim.x) {
     const int kk = i / 256, nn = (i / 32) % 8, l = i % 32, lg = l / 4, lt = l % 4;
-    const float v0 = w[(8 * kk + 2 * lt) * WIDTH + 8 * nn + lg];
-    const float v1 = w[(8 * kk + 2 * lt + 1) * WIDTH + 8 * nn + lg];
-    const uint32_t h0b = to_tf32(v0), h1b = to_tf32(v1);
-    Bhi[kk][nn][l] = make_uint2(h0b, h1b);
-    if (PASSES == 3)
-      Blo[kk][nn][l] = make_uint2(to_tf32(v0 - __uint_as_float(h0b)), to_tf32(v1 - __uint_as_float(h1b)));
+    const BFragment b = split_b(w[(8 * kk + 2 * lt) * WIDTH + 8 * nn + lg], w[(8 * kk + 2 * lt + 1) * WIDTH + 8 * nn + lg]);
+    Bhi[kk][nn][l] = b.hi;
+    if (PASSES == 3) Blo[kk][nn][l] = b.lo;
   }
-  // this warp's rows' A fragments for all 8 k-steps
   float4 frag[8];
   const int r0 = 16 * mtile + g;
-#pragma unroll
-  for (int kk = 0; kk < 8; ++kk)
-    frag[kk] = make_float4(h0[r0 * WIDTH + 8 * kk + 2 * t], h0[(r0 + 8) * WIDTH + 8 * kk + 2 * t],
-                           h0[r0 * WIDTH + 8 * kk + 2 * t + 1], h0[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1]);
+  load_fragments(frag, h0, r0, t);
   __syncthreads();
-  static_assert(ACCS == 1 || (ACCS == 3 && PASSES == 3), "one accumulator, or one per pass of three");
-  float acc[ACCS][NT][4];
   int buf = 0;
-  for (int s = 0; s < steps; ++s) {
-    for (int c = 0; c < chain; ++c) {
-#pragma unroll
-      for (int a = 0; a < ACCS; ++a)
-#pragma unroll
-        for (int j = 0; j < NT; ++j) acc[a][j][0] = acc[a][j][1] = acc[a][j][2] = acc[a][j][3] = 0.f;
-#pragma unroll
-      for (int kk = 0; kk < 8; ++kk) {
-        const float4 f = frag[kk];
-        const uint32_t ahi[4] = {to_tf32(f.x), to_tf32(f.y), to_tf32(f.z), to_tf32(f.w)};
-        uint32_t alo[4];
-        if (PASSES == 3) {
-          alo[0] = to_tf32(f.x - __uint_as_float(ahi[0]));
-          alo[1] = to_tf32(f.y - __uint_as_float(ahi[1]));
-          alo[2] = to_tf32(f.z - __uint_as_float(ahi[2]));
-          alo[3] = to_tf32(f.w - __uint_as_float(ahi[3]));
-        }
-#pragma unroll
-        for (int j = 0; j < NT; ++j) {
-          const int nn = part * NT + j;
-          const uint2 bh = Bhi[kk][nn][lane];
-          if (PASSES == 3) {
-            const uint2 bl = Blo[kk][nn][lane];
-            mma_tf32(acc[0][j], alo, bh.x, bh.y);
-            mma_tf32(acc[ACCS == 3 ? 1 : 0][j], ahi, bl.x, bl.y);
-          }
-          mma_tf32(acc[ACCS == 3 ? 2 : 0][j], ahi, bh.x, bh.y);
-        }
-      }
-      if (ACCS == 3) {
-#pragma unroll
-        for (int j = 0; j < NT; ++j)
-#pragma unroll
-          for (int e = 0; e < 4; ++e) acc[0][j][e] = (acc[0][j][e] + acc[1 % ACCS][j][e]) + acc[2 % ACCS][j][e];
-      }
-      if (NSPLIT == 1) {
-#pragma unroll
-        for (int j = 0; j < NT; ++j)
-          frag[j] = make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
-      } else {
-#pragma unroll
-        for (int j = 0; j < NT; ++j)
-          X[buf][mtile][part * NT + j][lane] =
-              make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
-        asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(32 * NSPLIT) : "memory");
-#pragma unroll
-        for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
-        buf ^= 1;
-      }
-    }
-  }
-  // the last product's output: frag[kk] = (c0, c2, c1, c3) of n-tile kk
-  if (part == 0) {
-#pragma unroll
-    for (int kk = 0; kk < 8; ++kk) {
-      out[r0 * WIDTH + 8 * kk + 2 * t] = frag[kk].x;
-      out[r0 * WIDTH + 8 * kk + 2 * t + 1] = frag[kk].z;
-      out[(r0 + 8) * WIDTH + 8 * kk + 2 * t] = frag[kk].y;
-      out[(r0 + 8) * WIDTH + 8 * kk + 2 * t + 1] = frag[kk].w;
-    }
-  }
+  const auto fetch = [&](int, int kk, int nn) {
+    return BFragment{Bhi[kk][nn][lane], PASSES == 3 ? Blo[kk][nn][lane] : make_uint2(0u, 0u)};
+  };
+  for (int s = 0; s < steps; ++s)
+    product_chain<PASSES, NSPLIT, ACCS>(frag, NSPLIT > 1 ? X : nullptr, buf, mtile, part, lane, chain, fetch);
+  if (part == 0) store_fragments(frag, out, r0, t);
 }
 
 // ----------------------------------------------------------------------------------------------
 // Adam on n parameters per step. The gradient stands for what the step's products would give:
-// g = 1e-3·w + 1e-4 (read from the weights, so that each step depends on the last).
+// g = 1e-3·|w| + 1e-4, read from the weights so that each step depends on the last, and never near
+// zero: where g crosses zero Adam's update g / (|g| + eps) turns on float32's rounding of g alone,
+// beyond the update's error bound (adam_bound in kernel_cuda.py).
 struct AdamArgs {
   float* w;
   float* m;
@@ -224,6 +252,8 @@ struct AdamArgs {
   int steps;
   float lr, b1, b2, eps;
 };
+
+__device__ __forceinline__ float synthetic_gradient(float w) { return 1e-3f * fabsf(w) + 1e-4f; }
 
 __device__ __forceinline__ float correction(float beta, int step) { return 1.f / (1.f - powf(beta, float(step + 1))); }
 
@@ -251,7 +281,7 @@ __device__ __forceinline__ void adam_quad(const AdamArgs& a, int i, float c1, fl
 __device__ __forceinline__ void gradient_quad(const AdamArgs& a, int i) {
   const float4 w = reinterpret_cast<const float4*>(a.w)[i];
   reinterpret_cast<float4*>(a.g)[i] =
-      make_float4(1e-3f * w.x + 1e-4f, 1e-3f * w.y + 1e-4f, 1e-3f * w.z + 1e-4f, 1e-3f * w.w + 1e-4f);
+      make_float4(synthetic_gradient(w.x), synthetic_gradient(w.y), synthetic_gradient(w.z), synthetic_gradient(w.w));
 }
 
 // mode 0: the grid's two syncs alone; mode 1: gradient in block 0, sync, Adam over the grid, sync
@@ -286,6 +316,71 @@ __global__ void block_adam(AdamArgs a) {
 }
 
 // ----------------------------------------------------------------------------------------------
+// Many seeds, one thread block each, `steps` whole steps per launch: per step `products` dependent
+// products of the seed's 32 rows on the tensor cores (tf32x3, three accumulators, the columns over
+// NSPLIT warps per row tile), product c on weight slot c % slots, then Adam over all n of the
+// seed's weights. The weights stay in shared memory for the whole launch (n floats, each 64 x 64
+// slot stored in B-fragment order: entry ((kk·8 + nn)·32 + lane)·2 + j is W[8kk + 2t + j][8nn + g],
+// so that a lane's two B values are one 8-byte load without bank conflicts); the moments are in
+// global memory, read and written once per step. The weights change every step, so each product
+// splits its B fragments into TF32 hi and lo parts as it loads them. The gradient stands for what
+// the step's products give: synthetic_gradient(w) + coupling·h, h one entry of the chain's last
+// output, so that the update waits for the products (a barrier) as a real step's would.
+template <int NSPLIT, int THREADS>
+__global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ h0, const float* __restrict__ w0,
+                                                  float* __restrict__ w_out, float* __restrict__ m,
+                                                  float* __restrict__ v, float* __restrict__ out, int n, int steps,
+                                                  int products, float coupling, float lr, float b1, float b2,
+                                                  float eps) {
+  extern __shared__ float4 shared_w4[];
+  float* w = reinterpret_cast<float*>(shared_w4);
+  __shared__ __align__(16) float4 X[NSPLIT > 1 ? 2 : 1][2][8][32];
+  __shared__ float link;
+  const int seed = blockIdx.x, quads = n / 4, slots = n / (WIDTH * WIDTH);
+  const float4* w0_4 = reinterpret_cast<const float4*>(w0 + size_t(seed) * n);
+  float4* m4 = reinterpret_cast<float4*>(m + size_t(seed) * n);
+  float4* v4 = reinterpret_cast<float4*>(v + size_t(seed) * n);
+  for (int i = threadIdx.x; i < quads; i += blockDim.x) shared_w4[i] = w0_4[i];
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  const int g = lane / 4, t = lane % 4;
+  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
+  const bool chain_warp = warp < 2 * NSPLIT;
+  const int r0 = 16 * mtile + g;
+  float4 frag[8];
+  if (chain_warp) load_fragments(frag, h0 + size_t(seed) * ROWS * WIDTH, r0, t);
+  __syncthreads();
+  int buf = 0;
+  const auto fetch = [&](int c, int kk, int nn) {
+    const float2 b = reinterpret_cast<const float2*>(w + (c % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
+    return split_b(b.x, b.y);
+  };
+  for (int s = 0; s < steps; ++s) {
+    if (chain_warp) {
+      product_chain<3, NSPLIT, 3>(frag, NSPLIT > 1 ? X : nullptr, buf, mtile, part, lane, products, fetch);
+      if (warp == 0 && lane == 0) link = frag[0].x;
+    }
+    __syncthreads();
+    const float h = coupling * link;
+    const float c1 = correction(b1, s), c2 = correction(b2, s);
+    const AdamArgs a{nullptr, nullptr, nullptr, nullptr, n, steps, lr, b1, b2, eps};
+    for (int i = threadIdx.x; i < quads; i += blockDim.x) {
+      float4 wq = shared_w4[i], mq = m4[i], vq = v4[i];
+      adam_one(wq.x, mq.x, vq.x, synthetic_gradient(wq.x) + h, c1, c2, a);
+      adam_one(wq.y, mq.y, vq.y, synthetic_gradient(wq.y) + h, c1, c2, a);
+      adam_one(wq.z, mq.z, vq.z, synthetic_gradient(wq.z) + h, c1, c2, a);
+      adam_one(wq.w, mq.w, vq.w, synthetic_gradient(wq.w) + h, c1, c2, a);
+      shared_w4[i] = wq;
+      m4[i] = mq;
+      v4[i] = vq;
+    }
+    __syncthreads();
+  }
+  float4* w_out4 = reinterpret_cast<float4*>(w_out + size_t(seed) * n);
+  for (int i = threadIdx.x; i < quads; i += blockDim.x) w_out4[i] = shared_w4[i];
+  if (chain_warp && part == 0) store_fragments(frag, out + size_t(seed) * ROWS * WIDTH, r0, t);
+}
+
+// ----------------------------------------------------------------------------------------------
 // host
 
 // The exact chain h_{c+1} = leaky(h_c W) in double, and an elementwise bound E on how far a kernel
@@ -297,10 +392,13 @@ struct Reference {
   std::vector<double> h, bound;
 };
 
-static Reference reference_chain(const std::vector<float>& h0, const std::vector<float>& w, int chain, double gamma) {
+// Product c uses ws[c % ws.size()] (each [WIDTH, WIDTH], row-major [k][o]).
+static Reference reference_chain(const std::vector<float>& h0, const std::vector<std::vector<float>>& ws, int chain,
+                                 double gamma) {
   const double u32 = std::ldexp(1.0, -24);
   std::vector<double> h(h0.begin(), h0.end()), e(h.size(), 0.0), next(h.size()), next_e(h.size());
   for (int c = 0; c < chain; ++c) {
+    const std::vector<float>& w = ws[c % ws.size()];
     for (int r = 0; r < ROWS; ++r)
       for (int o = 0; o < WIDTH; ++o) {
         double s = 0.0, abs_s = 0.0, err = 0.0;
@@ -388,15 +486,165 @@ static std::vector<int> parse_list(const char* s) {
   return out;
 }
 
+
+// ----------------------------------------------------------------------------------------------
+// seed_steps: each seed's data drawn apart; checks against the host for every seed, then timings.
+typedef void (*SeedKernel)(const float*, const float*, float*, float*, float*, float*, int, int, int, float, float,
+                           float, float, float);
+
+static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, int products, int repeats,
+                          std::mt19937& rng) {
+  const int max_seeds = *std::max_element(seed_counts.begin(), seed_counts.end());
+  const int slots = n / (WIDTH * WIDTH), check_chain = 4, check_steps = 5;
+  const float lr = 1e-3f, b1 = 0.9f, b2 = 0.999f, eps = 1e-8f;
+  std::normal_distribution<float> normal(0.f, 1.f);
+  const float scale = std::sqrt(2.f / (1.f + SLOPE * SLOPE) / WIDTH);
+  std::vector<float> hs(size_t(max_seeds) * ROWS * WIDTH), ws(size_t(max_seeds) * n);
+  for (auto& x : hs) x = normal(rng);
+  for (auto& x : ws) x = scale * normal(rng);
+  float *d_h, *d_w, *d_wout, *d_m, *d_v, *d_out;
+  CHECK(cudaMalloc(&d_h, hs.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_w, ws.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_wout, ws.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_m, ws.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_v, ws.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_out, hs.size() * sizeof(float)));
+  CHECK(cudaMemcpy(d_h, hs.data(), hs.size() * sizeof(float), cudaMemcpyHostToDevice));
+  CHECK(cudaMemcpy(d_w, ws.data(), ws.size() * sizeof(float), cudaMemcpyHostToDevice));
+  const size_t smem = size_t(n) * sizeof(float);
+  auto zero_moments = [&] {
+    CHECK(cudaMemset(d_m, 0, ws.size() * sizeof(float)));
+    CHECK(cudaMemset(d_v, 0, ws.size() * sizeof(float)));
+  };
+
+  // the host's view of every seed: slot s of seed i as a [k][o] matrix (the B-fragment order undone)
+  auto slot_matrix = [&](int seed, int slot) {
+    std::vector<float> W(WIDTH * WIDTH);
+    const float* src = ws.data() + size_t(seed) * n + size_t(slot) * WIDTH * WIDTH;
+    for (int kk = 0; kk < 8; ++kk)
+      for (int nn = 0; nn < 8; ++nn)
+        for (int lane = 0; lane < 32; ++lane)
+          for (int j = 0; j < 2; ++j)
+            W[(8 * kk + 2 * (lane % 4) + j) * WIDTH + 8 * nn + lane / 4] = src[((kk * 8 + nn) * 32 + lane) * 2 + j];
+    return W;
+  };
+  std::vector<Reference> chain_refs(max_seeds);
+  const double gamma = product_gamma("tf32x3");
+  for (int i = 0; i < max_seeds; ++i) {
+    std::vector<std::vector<float>> wi(std::min(check_chain, slots));
+    for (size_t c = 0; c < wi.size(); ++c) wi[c] = slot_matrix(i, int(c));
+    std::vector<float> hi(ROWS * WIDTH);
+    std::copy_n(hs.data() + size_t(i) * ROWS * WIDTH, ROWS * WIDTH, hi.data());
+    chain_refs[i] = reference_chain(hi, wi, check_chain, gamma);
+  }
+  // Adam with synthetic_gradient (coupling 0) for every seed, in double
+  std::vector<double> wr(ws.begin(), ws.end()), mr(ws.size(), 0.0), vr(ws.size(), 0.0);
+  for (int s = 0; s < check_steps; ++s)
+    for (size_t i = 0; i < ws.size(); ++i) {
+      const double gi = double(1e-3f) * std::fabs(wr[i]) + double(1e-4f);
+      mr[i] = double(b1) * mr[i] + (1 - double(b1)) * gi;
+      vr[i] = double(b2) * vr[i] + (1 - double(b2)) * gi * gi;
+      wr[i] -= double(lr) * (mr[i] / (1 - std::pow(double(b1), s + 1))) /
+               (std::sqrt(vr[i] / (1 - std::pow(double(b2), s + 1))) + double(eps));
+    }
+
+  struct SeedVariant {
+    int nsplit, threads;
+    SeedKernel fn;
+  };
+  const SeedVariant variants[] = {{1, 128, seed_steps<1, 128>},
+                                  {1, 256, seed_steps<1, 256>},
+                                  {2, 128, seed_steps<2, 128>},
+                                  {2, 256, seed_steps<2, 256>}};
+  std::vector<float> got_out(hs.size()), got_w(ws.size());
+  for (const SeedVariant& sv : variants) {
+    const int threads = sv.threads;
+    CHECK(cudaFuncSetAttribute(sv.fn, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem)));
+    int blocks_per_sm = 0;
+    CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks_per_sm, sv.fn, threads, smem));
+    if (blocks_per_sm < 1) {
+      fprintf(stderr, "seed_steps: one block of %d threads with %zu bytes of weights does not fit a multiprocessor\n",
+              threads, smem);
+      return 1;
+    }
+    // the products of one step against the chain's reference, every seed
+    zero_moments();
+    sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, 1, check_chain, 0.f, lr, b1, b2, eps);
+    CHECK(cudaGetLastError());
+    CHECK(cudaMemcpy(got_out.data(), d_out, got_out.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    double worst_rel = 0.0, worst_over = 0.0;
+    for (int i = 0; i < max_seeds; ++i) {
+      std::vector<float> gi(got_out.begin() + size_t(i) * ROWS * WIDTH, got_out.begin() + size_t(i + 1) * ROWS * WIDTH);
+      double rel, over;
+      chain_errors(gi, chain_refs[i], &rel, &over);
+      worst_rel = std::max(worst_rel, rel);
+      worst_over = std::max(worst_over, over);
+    }
+    printf("{\"check\": \"chain_seed_steps\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"accumulators\": 3, "
+           "\"seeds\": %d, \"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+           sv.nsplit, max_seeds, check_chain, worst_rel, worst_over);
+    // Adam over several steps, every seed: its error relative to its own update
+    zero_moments();
+    sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, check_steps, check_chain, 0.f, lr, b1,
+                                        b2, eps);
+    CHECK(cudaGetLastError());
+    CHECK(cudaMemcpy(got_w.data(), d_wout, got_w.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    std::string errs, abs_ws, updates;
+    for (int i = 0; i < max_seeds; ++i) {
+      double err = 0.0, max_abs_w = 0.0, max_update = 0.0;
+      for (size_t k = size_t(i) * n; k < size_t(i + 1) * n; ++k) {
+        err = std::max(err, std::fabs(double(got_w[k]) - wr[k]));
+        max_abs_w = std::max(max_abs_w, std::fabs(wr[k]));
+        max_update = std::max(max_update, std::fabs(wr[k] - double(ws[k])));
+      }
+      char buf[64];
+      snprintf(buf, sizeof buf, "%s%.3e", i ? ", " : "", err / max_update);
+      errs += buf;
+      snprintf(buf, sizeof buf, "%s%.6e", i ? ", " : "", max_abs_w);
+      abs_ws += buf;
+      snprintf(buf, sizeof buf, "%s%.6e", i ? ", " : "", max_update);
+      updates += buf;
+    }
+    printf("{\"check\": \"adam_seed_steps\", \"nsplit\": %d, \"threads\": %d, \"seeds\": %d, \"steps\": %d, "
+           "\"max_err_over_update\": [%s], \"max_abs_w\": [%s], \"max_update\": [%s]}\n",
+           sv.nsplit, threads, max_seeds, check_steps, errs.c_str(), abs_ws.c_str(), updates.c_str());
+    for (int seeds : seed_counts)
+      for (int p : {0, products}) {
+        zero_moments();
+        const float ms = time_launches(
+            [&] {
+              sv.fn<<<seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, loop, p, 1e-9f, lr, b1, b2, eps);
+            },
+            repeats);
+        CHECK(cudaGetLastError());
+        printf("{\"kernel\": \"seed_steps\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"threads\": %d, "
+               "\"blocks_per_sm\": %d, \"seeds\": %d, \"products\": %d, \"n\": %d, \"steps\": %d, "
+               "\"us_per_step\": %.4f}\n",
+               sv.nsplit, threads, blocks_per_sm, seeds, p, n, loop, 1e3 * ms / loop);
+      }
+  }
+  return 0;
+}
+
 int main(int argc, char** argv) {
-  // arguments: chains steps repeats adam_n adam_steps
+  // arguments: chains steps repeats adam_n adam_steps seed_counts seed_n seed_loop seed_products
   const std::vector<int> chains = parse_list(argc > 1 ? argv[1] : "1,8,32");
   const int steps = argc > 2 ? std::atoi(argv[2]) : 2000;
   const int repeats = argc > 3 ? std::atoi(argv[3]) : 5;
   const int adam_n = argc > 4 ? std::atoi(argv[4]) : 41600;
   const int adam_steps = argc > 5 ? std::atoi(argv[5]) : 2000;
-  if (adam_n % 4 != 0) {
-    fprintf(stderr, "adam_n=%d: the Adam kernels take entries in fours; give a multiple of 4\n", adam_n);
+  const std::vector<int> seed_counts = parse_list(argc > 6 ? argv[6] : "1,132,256");
+  const int seed_n = argc > 7 ? std::atoi(argv[7]) : 22664;
+  const int seed_loop = argc > 8 ? std::atoi(argv[8]) : 500;
+  const int seed_products = argc > 9 ? std::atoi(argv[9]) : 32;
+  if (adam_n % 4 != 0 || seed_n % 4 != 0) {
+    fprintf(stderr, "adam_n=%d, seed_n=%d: the Adam kernels take entries in fours; give multiples of 4\n", adam_n,
+            seed_n);
+    return 2;
+  }
+  if (seed_n < WIDTH * WIDTH || seed_counts.empty()) {
+    fprintf(stderr, "seed_n=%d: the seeds' kernel needs at least one %d x %d weight slot, and a seed count\n",
+            seed_n, WIDTH, WIDTH);
     return 2;
   }
 
@@ -429,9 +677,10 @@ int main(int argc, char** argv) {
       {"chain_mma", "tf32x3", 4, 1, 256, chain_mma<3, 4, 1>},
   };
   const int check_chain = 4;
+  const std::vector<std::vector<float>> one_weight{w};
   std::vector<float> got(h0.size());
   for (const ChainVariant& v : variants) {
-    const Reference ref = reference_chain(h0, w, check_chain, product_gamma(v.precision));
+    const Reference ref = reference_chain(h0, one_weight, check_chain, product_gamma(v.precision));
     v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, 1, check_chain);
     CHECK(cudaGetLastError());
     CHECK(cudaMemcpy(got.data(), d_out, got.size() * sizeof(float), cudaMemcpyDeviceToHost));
@@ -468,7 +717,7 @@ int main(int argc, char** argv) {
   const double b1 = a.b1, b2 = a.b2, lr = a.lr, eps = a.eps;
   for (int s = 0; s < check_steps; ++s)
     for (int i = 0; i < adam_n; ++i) {
-      const double gi = double(1e-3f) * wr[i] + double(1e-4f);
+      const double gi = double(1e-3f) * std::fabs(wr[i]) + double(1e-4f);
       mr[i] = b1 * mr[i] + (1 - b1) * gi;
       vr[i] = b2 * vr[i] + (1 - b2) * gi * gi;
       wr[i] -= lr * (mr[i] / (1 - std::pow(b1, s + 1))) / (std::sqrt(vr[i] / (1 - std::pow(b2, s + 1))) + eps);
@@ -534,5 +783,5 @@ int main(int argc, char** argv) {
            "\"us_per_step\": %.4f}\n",
            bt, adam_n, adam_steps, 1e3 * ms / adam_steps);
   }
-  return 0;
+  return seed_benchmark(seed_counts, seed_n, seed_loop, seed_products, repeats, rng);
 }

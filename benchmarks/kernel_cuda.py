@@ -19,6 +19,13 @@ hand):
   cooperative grid of one block per multiprocessor between two grid-wide syncs (block 0 reads the
   weights and writes a gradient first, as the block that forms the products would); the syncs
   alone; and the whole update in one block.
+- ``seed_steps``: many seeds in one launch, one thread block per seed (``--seeds``), each running
+  whole steps: ``--products`` dependent tf32x3 products on weight slots held in shared memory
+  (each seed's ``--seed-n`` weights stay on chip for the launch), then Adam over all of them with
+  the moments in global memory; and the same with no products (Adam alone). Every seed has data
+  of its own; each seed's products are checked against the chain's bound and its weights after
+  five steps against Adam's. This is the floor of a hand-written kernel for goal 4's 256 seeds,
+  where one seed's step cannot spread over the whole GPU.
 
 Every kernel is checked against a double-precision host computation before it is timed (the
 chains entry by entry against a forward-error bound of the chain, ``reference_chain`` in the
@@ -30,7 +37,7 @@ statistics: it is a floor of the approach, not a kernel::
     python -m benchmarks.kernel_cuda --out kernel_cuda.json
 
 Needs nvcc and an NVIDIA GPU (``--arch native`` builds for the GPU present); results:
-benchmarks/RESULTS.md, twenty-second session.
+benchmarks/RESULTS.md, twenty-second session (one seed) and thirty-ninth (many seeds).
 """
 
 from __future__ import annotations
@@ -85,8 +92,9 @@ def spills(ptxas_report: str) -> int:
     return sum(int(n) for n in re.findall(r"(\d+) bytes spill stores", ptxas_report))
 
 
-def summarize(lines: list[dict], products: int) -> dict:
-    """Checks, fits and the floor estimate from the executable's JSON lines."""
+def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dict:
+    """Checks, fits and the floor estimates from the executable's JSON lines (``run_steps``: the
+    Adam steps of a run, for the many-seed estimate)."""
     device = next(r for r in lines if "device" in r)
     checks, failed = [], []
     for r in lines:
@@ -95,8 +103,16 @@ def summarize(lines: list[dict], products: int) -> dict:
             # (kernel_cuda.cu, reference_chain): the largest ratio must not exceed 1
             bound, err = 1.0, r["max_err_over_bound"]
         elif "check" in r:
-            bound = adam_bound(r["steps"], r["max_abs_w"], r["max_update"])
-            err = r["max_err_over_update"]
+            # one value per seed (seed_steps) or one for the kernel: each seed against its own bound
+            errs, abs_ws, updates = (np.atleast_1d(np.asarray(r[k], dtype=float))
+                                     for k in ("max_err_over_update", "max_abs_w", "max_update"))
+            bounds = np.array([adam_bound(r["steps"], a, u) for a, u in zip(abs_ws, updates)])
+            worst = int(np.argmax(errs / bounds))
+            bound, err = float(bounds[worst]), float(errs[worst])
+            if errs.size > 1:
+                r = {k: val for k, val in r.items() if not isinstance(val, list)}
+                r.update(worst_seed=worst, max_err_over_update=err, max_abs_w=float(abs_ws[worst]),
+                         max_update=float(updates[worst]))
         else:
             continue
         checks.append({**r, "bound": bound, "ok": bool(err <= bound)})
@@ -123,8 +139,29 @@ def summarize(lines: list[dict], products: int) -> dict:
                     "us_per_product": accurate[best]["us_per_product"],
                     "adam_kernel": update, "adam_us": updates[update],
                     "us_per_step": products * accurate[best]["us_per_product"] + updates[update]}
+    seeds = seeds_estimate([r for r in lines if r.get("kernel") == "seed_steps"], products, run_steps)
     return {"device": device, "checks": checks, "failed_checks": failed, "chain_fits": fits,
-            "adam_us_per_step": adam, "floor_estimate": estimate}
+            "adam_us_per_step": adam, "floor_estimate": estimate, "seed_steps": seeds}
+
+
+def seeds_estimate(rows: list[dict], products: int, run_steps: int) -> dict | None:
+    """The many-seed kernel's timings (``seed_steps`` lines) and, at the largest seed count, the
+    fastest variant's step with ``products`` products and with none (Adam alone), and what
+    ``run_steps`` such steps take."""
+    if not rows:
+        return None
+    name = lambda r: f"split{r['nsplit']}_{r['threads']}threads"  # noqa: E731
+    table = {f"{name(r)}_{r['seeds']}seeds_{r['products']}products": r["us_per_step"] for r in rows}
+    most = max(r["seeds"] for r in rows)
+    at_most = [r for r in rows if r["seeds"] == most]
+    out = {"us_per_step": table, "seeds": most, "run_steps": run_steps}
+    for key, p in (("step", products), ("adam_alone", 0)):
+        cand = [r for r in at_most if r["products"] == p]
+        if cand:
+            best = min(cand, key=lambda r: r["us_per_step"])
+            out[key] = {"variant": name(best), "blocks_per_sm": best["blocks_per_sm"], "products": p,
+                        "us_per_step": best["us_per_step"], "run_s": best["us_per_step"] * run_steps * 1e-6}
+    return out
 
 
 def main(argv=None) -> int:
@@ -138,6 +175,13 @@ def main(argv=None) -> int:
     p.add_argument("--adam-steps", type=int, default=2000, help="Adam steps per launch")
     p.add_argument("--products", type=int, default=32, help="products per GMR Adam step in the estimate "
                    "(11 forward, 11 weight gradients, 10 input gradients)")
+    p.add_argument("--seeds", default="1,132,256", help="comma-separated seed counts for the many-seed "
+                   "kernel (one thread block per seed)")
+    p.add_argument("--seed-n", type=int, default=22_664, help="each seed's weights in the many-seed kernel "
+                   "(GMR A,B's 22 662 trained entries, rounded up to a multiple of 4)")
+    p.add_argument("--seed-steps", type=int, default=500, help="whole steps per launch of the many-seed kernel")
+    p.add_argument("--run-steps", type=int, default=192_000, help="Adam steps of a run in the many-seed "
+                   "estimate (GMR A,B: 10 iterations × 19 200)")
     p.add_argument("--nvcc", default="nvcc", help="the CUDA compiler")
     p.add_argument("--arch", default="native", help="nvcc's -arch (native: the GPU present)")
     p.add_argument("--out", help="write the results as JSON to this file")
@@ -148,9 +192,21 @@ def main(argv=None) -> int:
         p.error(f"--chain {args.chain!r}: expected comma-separated integers such as 1,8,32")
     if len(set(chains)) < 2 or min(chains) < 1:
         p.error(f"--chain {args.chain!r}: give at least two distinct positive lengths, e.g. 1,8,32")
-    for name in ("steps", "repeats", "adam_n", "adam_steps", "products"):
+    try:
+        seed_counts = [int(c) for c in args.seeds.split(",") if c.strip()]
+    except ValueError:
+        p.error(f"--seeds {args.seeds!r}: expected comma-separated integers such as 1,132,256")
+    if not seed_counts or min(seed_counts) < 1:
+        p.error(f"--seeds {args.seeds!r}: give positive seed counts, e.g. 1,132,256")
+    for name in ("steps", "repeats", "adam_n", "adam_steps", "products", "seed_steps", "run_steps"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be at least 1")
+    for name in ("adam_n", "seed_n"):
+        if getattr(args, name) % 4:
+            p.error(f"--{name.replace('_', '-')} {getattr(args, name)}: the Adam kernels take entries in fours; "
+                    "give a multiple of 4")
+    if args.seed_n < 64 * 64:
+        p.error(f"--seed-n {args.seed_n}: the many-seed kernel needs at least one 64 × 64 weight slot (4096)")
     nvcc = shutil.which(args.nvcc)
     if nvcc is None:
         raise SystemExit(f"kernel_cuda: the CUDA compiler {args.nvcc!r} was not found; install the CUDA "
@@ -159,13 +215,14 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         exe, report = build(nvcc, args.arch, tmp)
         cmd = [str(exe), ",".join(map(str, chains)), str(args.steps), str(args.repeats), str(args.adam_n),
-               str(args.adam_steps)]
+               str(args.adam_steps), ",".join(map(str, seed_counts)), str(args.seed_n), str(args.seed_steps),
+               str(args.products)]
         res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise SystemExit(f"kernel_cuda: the benchmark failed (exit {res.returncode}): "
                          f"{(res.stderr.strip() or res.stdout.strip()).splitlines()[-1:]}")
     lines = [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
-    summary = summarize(lines, args.products)
+    summary = summarize(lines, args.products, args.run_steps)
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": summary["device"], "nvcc": version,
            "python": platform.python_version(), "spill_store_bytes": spills(report),
            "cuda_visible_devices": os.environ.get("CUDA_VISIBLE_DEVICES", "")}
@@ -176,8 +233,9 @@ def main(argv=None) -> int:
             what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}: max error {c['max_rel_err']:.2e} "
                     f"of max|h|, {c['max_err_over_bound']:.2e} of its bound")
         else:
+            seeds = f", worst of {c['seeds']} seeds" if "seeds" in c else ""
             what = (f"{c['threads']:4d} threads: max error {c['max_err_over_update']:.2e} of the update "
-                    f"(bound {c['bound']:.1e})")
+                    f"(bound {c['bound']:.1e}{seeds})")
         print(f"check {c['check']:10s} {what} {'ok' if c['ok'] else 'FAILED'}", flush=True)
     for name, f in summary["chain_fits"].items():
         print(f"{name:36s}: {f['us_per_product']:.3f} µs per dependent product, "
@@ -189,6 +247,16 @@ def main(argv=None) -> int:
         print(f"floor of a one-kernel CUDA S-step: {e['products']} × {e['us_per_product']:.3f} µs "
               f"({e['product_kernel']}) + {e['adam_us']:.2f} µs Adam = {e['us_per_step']:.1f} µs per step, "
               "before the head, the loss, the gather and the statistics", flush=True)
+    if summary["seed_steps"]:
+        e = summary["seed_steps"]
+        for name, us in e["us_per_step"].items():
+            print(f"seed_steps {name:36s}: {us:.2f} µs per step of all seeds", flush=True)
+        for key, what in (("adam_alone", "Adam alone"), ("step", f"{args.products} products + Adam")):
+            if key in e:
+                b = e[key]
+                print(f"{e['seeds']} seeds, one block each ({b['variant']}, {b['blocks_per_sm']} per multiprocessor), "
+                      f"{what} over {args.seed_n} weights: {b['us_per_step']:.1f} µs per step; "
+                      f"{e['run_steps']} steps {b['run_s']:.1f} s", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"env": env, "args": vars(args), "lines": lines, **summary}, f, indent=1)

@@ -106,6 +106,37 @@ def test_summary_fits_checks_and_estimate():
     assert [c["precision"] for c in bad["failed_checks"]] == ["tf32x3"]
 
 
+def _seed_lines(errs):
+    """The many-seed kernel's lines: a per-seed Adam check with errors ``errs`` (relative to each
+    seed's update) and timings for 1 and 256 seeds, two variants."""
+    n = len(errs)
+    lines = [{"check": "adam_seed_steps", "nsplit": 2, "threads": 256, "seeds": n, "steps": 5,
+              "max_err_over_update": list(errs), "max_abs_w": [0.4] * n, "max_update": [5e-3] * n}]
+    for nsplit, us in ((1, {0: 30.0, 32: 80.0}), (2, {0: 28.0, 32: 60.0})):
+        for seeds in (1, 256):
+            for products in (0, 32):
+                lines.append({"kernel": "seed_steps", "precision": "tf32x3", "nsplit": nsplit, "threads": 256,
+                              "blocks_per_sm": 2, "seeds": seeds, "products": products, "n": 22664,
+                              "steps": 500, "us_per_step": us[products] / (10 if seeds == 1 else 1)})
+    return lines
+
+
+def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
+    chain_us = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
+    bound = kernel_cuda.adam_bound(5, 0.4, 5e-3)
+    s = kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10] * 3), products=32, run_steps=1000)
+    assert not s["failed_checks"]
+    e = s["seed_steps"]
+    # the fastest variant at the largest seed count, with the products and with Adam alone
+    assert e["seeds"] == 256 and e["step"]["variant"] == "split2_256threads"
+    assert e["step"]["us_per_step"] == 60.0 and e["step"]["run_s"] == pytest.approx(60.0 * 1000 * 1e-6)
+    assert e["adam_alone"]["us_per_step"] == 28.0
+    assert e["us_per_step"]["split1_256threads_1seeds_32products"] == pytest.approx(8.0)
+    # one seed beyond its own bound fails the check, and the check names it
+    bad = kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10, bound * 1.01, bound / 10]), products=32)
+    assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
+
+
 def test_adam_bound_and_line_fit():
     # Adam's float32 update after 5 steps, weights of 0.4, updates of 5e-3: a few times 1e-4,
     # dominated by the bias correction's cancellation at the first step
@@ -121,12 +152,18 @@ def test_missing_compiler_and_bad_arguments_are_one_line(capsys):
     with pytest.raises(SystemExit):
         kernel_cuda.main(["--chain", "8"])
     assert "at least two distinct positive lengths" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        kernel_cuda.main(["--seed-n", "4098"])
+    assert "multiple of 4" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        kernel_cuda.main(["--seeds", "0,256"])
+    assert "positive seed counts" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(shutil.which("nvcc") is None, reason="nvcc not installed")
 def test_kernels_build_for_hopper_without_spills(tmp_path):
     exe, report = kernel_cuda.build("nvcc", "sm_90", str(tmp_path))
     assert exe.exists()
-    for kernel in ("chain_fma", "chain_mma", "grid_adam", "block_adam"):
+    for kernel in ("chain_fma", "chain_mma", "grid_adam", "block_adam", "seed_steps"):
         assert kernel in report
     assert kernel_cuda.spills(report) == 0
