@@ -581,8 +581,8 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
       worst_over = std::max(worst_over, over);
     }
     printf("{\"check\": \"chain_seed_steps\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"accumulators\": 3, "
-           "\"seeds\": %d, \"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
-           sv.nsplit, max_seeds, check_chain, worst_rel, worst_over);
+           "\"threads\": %d, \"seeds\": %d, \"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+           sv.nsplit, threads, max_seeds, check_chain, worst_rel, worst_over);
     // Adam over several steps, every seed: its error relative to its own update
     zero_moments();
     sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, check_steps, check_chain, 0.f, lr, b1,

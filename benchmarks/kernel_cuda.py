@@ -230,8 +230,9 @@ def main(argv=None) -> int:
           f"{version}", flush=True)
     for c in summary["checks"]:
         if "max_err_over_bound" in c:
-            what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}: max error {c['max_rel_err']:.2e} "
-                    f"of max|h|, {c['max_err_over_bound']:.2e} of its bound")
+            threads = f" {c['threads']} threads" if "seeds" in c else ""
+            what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}{threads}: max error "
+                    f"{c['max_rel_err']:.2e} of max|h|, {c['max_err_over_bound']:.2e} of its bound")
         else:
             seeds = f", worst of {c['seeds']} seeds" if "seeds" in c else ""
             what = (f"{c['threads']:4d} threads: max error {c['max_err_over_update']:.2e} of the update "
