@@ -68,6 +68,54 @@ def adam_bound(steps: int, max_abs_w: float, max_update: float, b2: float = 0.99
     return steps * (2.0 * u * max_abs_w + (8.0 * u + u / (1.0 - b2)) * max_update) / max_update
 
 
+def adam_float32_error(w0: np.ndarray, steps: int, absolute: bool = True, lr: float = 1e-3, b1: float = 0.9,
+                       b2: float = 0.999, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``steps`` Adam steps in float32 against the same in float64 (NumPy), with the kernels'
+    synthetic gradient 1e-3·|w| + 1e-4 (``absolute``) or the earlier 1e-3·w + 1e-4, which crosses
+    zero at w = −0.1.
+
+    Args:
+      w0: [S, n] float32 starting weights (one row per seed).
+    Returns:
+      per row: (max|w32 − w64| / max|w64 − w0|, max|w64|, max|w64 − w0|), the quantities the
+      kernels' checks hold against ``adam_bound``.
+    """
+    f = np.float32
+    grad = (lambda w, c: c(1e-3) * np.abs(w) + c(1e-4)) if absolute else (lambda w, c: c(1e-3) * w + c(1e-4))
+    w0 = np.asarray(w0, f)
+    w, m, v = w0.copy(), np.zeros_like(w0), np.zeros_like(w0)
+    wr, mr, vr = w0.astype(np.float64), np.zeros(w0.shape), np.zeros(w0.shape)
+    for s in range(steps):
+        g = grad(w, f)
+        m = f(b1) * m + (f(1) - f(b1)) * g
+        v = f(b2) * v + (f(1) - f(b2)) * g * g
+        c1, c2 = f(1) / (f(1) - f(b1) ** f(s + 1)), f(1) / (f(1) - f(b2) ** f(s + 1))
+        w = w - f(lr) * (m * c1) / (np.sqrt(v * c2) + f(eps))
+        gr = grad(wr, lambda x: float(f(x)))
+        mr = float(f(b1)) * mr + (1 - float(f(b1))) * gr
+        vr = float(f(b2)) * vr + (1 - float(f(b2))) * gr * gr
+        wr = wr - float(f(lr)) * (mr / (1 - float(f(b1)) ** (s + 1))) / (
+            np.sqrt(vr / (1 - float(f(b2)) ** (s + 1))) + float(f(eps)))
+    update = np.abs(wr - w0).max(axis=-1)
+    return np.abs(w - wr).max(axis=-1) / update, np.abs(wr).max(axis=-1), update
+
+
+def emulate(seeds: int, n: int, steps: int = 5, seed: int = 0) -> dict:
+    """The many-seed Adam check in NumPy for both synthetic gradients, on weights drawn as the
+    kernel draws them (He's scale for leaky ReLU; another generator, so other values): each
+    seed's error against its own ``adam_bound``."""
+    scale = np.sqrt(2.0 / (1.0 + 0.2 ** 2) / 64)
+    w0 = (scale * np.random.default_rng(seed).standard_normal((seeds, n))).astype(np.float32)
+    out = {}
+    for name, absolute in (("1e-3*|w|+1e-4", True), ("1e-3*w+1e-4", False)):
+        err, abs_w, update = adam_float32_error(w0, steps, absolute)
+        bound = np.array([adam_bound(steps, a, u) for a, u in zip(abs_w, update)])
+        worst = int(np.argmax(err / bound))
+        out[name] = {"worst_seed": worst, "max_err_over_update": float(err[worst]), "bound": float(bound[worst]),
+                     "seeds_over_bound": int(np.sum(~(err <= bound))), "median_err_over_update": float(np.median(err))}
+    return out
+
+
 def line_fit(points: list[tuple[float, float]]) -> tuple[float, float]:
     """Least-squares (slope, intercept) of (x, y) points (at least two distinct x)."""
     x, y = np.asarray(points, dtype=float).T
@@ -85,6 +133,15 @@ def build(nvcc: str, arch: str, out_dir: str) -> tuple[Path, str]:
     if res.returncode != 0:
         raise SystemExit(f"kernel_cuda: nvcc failed ({' '.join(cmd)}):\n{res.stderr[-3000:]}")
     return exe, res.stderr
+
+
+def parse_lines(stdout: str) -> list[dict]:
+    """The executable's JSON lines. C's printf writes a NaN as ``nan`` or ``-nan`` and an infinity
+    as ``inf``, which JSON lacks; they are read as Python's NaN and infinities, so that a check
+    with a non-finite error fails instead of the parse."""
+    fix = lambda line: re.sub(r"(?<![\w.])(-?)(nan|inf)(?![\w])", lambda m: "NaN" if m.group(2) == "nan"  # noqa: E731
+                              else f"{m.group(1)}Infinity", line)
+    return [json.loads(fix(line)) for line in stdout.splitlines() if line.startswith("{")]
 
 
 def spills(ptxas_report: str) -> int:
@@ -109,7 +166,7 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
             bounds = np.array([adam_bound(r["steps"], a, u) for a, u in zip(abs_ws, updates)])
             worst = int(np.argmax(errs / bounds))
             bound, err = float(bounds[worst]), float(errs[worst])
-            if errs.size > 1:
+            if isinstance(r["max_err_over_update"], list):
                 r = {k: val for k, val in r.items() if not isinstance(val, list)}
                 r.update(worst_seed=worst, max_err_over_update=err, max_abs_w=float(abs_ws[worst]),
                          max_update=float(updates[worst]))
@@ -154,7 +211,9 @@ def seeds_estimate(rows: list[dict], products: int, run_steps: int) -> dict | No
     table = {f"{name(r)}_{r['seeds']}seeds_{r['products']}products": r["us_per_step"] for r in rows}
     most = max(r["seeds"] for r in rows)
     at_most = [r for r in rows if r["seeds"] == most]
-    out = {"us_per_step": table, "seeds": most, "run_steps": run_steps}
+    out = {"us_per_step": table, "seeds": most, "run_steps": run_steps,
+           "chains_not_finite": [f"{name(r)}_{r['seeds']}seeds_{r['products']}products" for r in rows
+                                 if r.get("out_finite") is False]}
     for key, p in (("step", products), ("adam_alone", 0)):
         cand = [r for r in at_most if r["products"] == p]
         if cand:
@@ -182,6 +241,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed-steps", type=int, default=500, help="whole steps per launch of the many-seed kernel")
     p.add_argument("--run-steps", type=int, default=192_000, help="Adam steps of a run in the many-seed "
                    "estimate (GMR A,B: 10 iterations × 19 200)")
+    p.add_argument("--emulate", action="store_true", help="instead of the kernels: the many-seed Adam check in "
+                   "NumPy (float32 against float64) for the synthetic gradient and the earlier one, which crossed "
+                   "zero; needs no GPU")
     p.add_argument("--nvcc", default="nvcc", help="the CUDA compiler")
     p.add_argument("--arch", default="native", help="nvcc's -arch (native: the GPU present)")
     p.add_argument("--out", help="write the results as JSON to this file")
@@ -207,6 +269,18 @@ def main(argv=None) -> int:
                     "give a multiple of 4")
     if args.seed_n < 64 * 64:
         p.error(f"--seed-n {args.seed_n}: the many-seed kernel needs at least one 64 × 64 weight slot (4096)")
+    if args.emulate:
+        n_seeds = max(seed_counts)
+        result = emulate(n_seeds, args.seed_n)
+        for name, r in result.items():
+            print(f"gradient {name}: worst seed {r['worst_seed']} of {n_seeds}, error {r['max_err_over_update']:.2e} "
+                  f"of the update (its bound {r['bound']:.1e}); {r['seeds_over_bound']} seeds over their bound",
+                  flush=True)
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump({"env": {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "numpy": np.__version__},
+                           "args": vars(args), "emulate": result}, f, indent=1)
+        return 0
     nvcc = shutil.which(args.nvcc)
     if nvcc is None:
         raise SystemExit(f"kernel_cuda: the CUDA compiler {args.nvcc!r} was not found; install the CUDA "
@@ -221,7 +295,7 @@ def main(argv=None) -> int:
     if res.returncode != 0:
         raise SystemExit(f"kernel_cuda: the benchmark failed (exit {res.returncode}): "
                          f"{(res.stderr.strip() or res.stdout.strip()).splitlines()[-1:]}")
-    lines = [json.loads(line) for line in res.stdout.splitlines() if line.startswith("{")]
+    lines = parse_lines(res.stdout)
     summary = summarize(lines, args.products, args.run_steps)
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": summary["device"], "nvcc": version,
            "python": platform.python_version(), "spill_store_bytes": spills(report),
@@ -252,6 +326,9 @@ def main(argv=None) -> int:
         e = summary["seed_steps"]
         for name, us in e["us_per_step"].items():
             print(f"seed_steps {name:36s}: {us:.2f} µs per step of all seeds", flush=True)
+        if e["chains_not_finite"]:
+            print(f"seed_steps: the timed chains ended non-finite in {', '.join(e['chains_not_finite'])} "
+                  "(the timings stand; the values are not checked there)", flush=True)
         for key, what in (("adam_alone", "Adam alone"), ("step", f"{args.products} products + Adam")):
             if key in e:
                 b = e[key]

@@ -6,10 +6,12 @@ double-precision host computation before timing it (and exits with an error afte
 check). Here: a model
 of ``mma.m16n8k8``'s fragments (PTX's layout, one 16-row tile, 32 lanes) shows that storing W's
 rows in an accumulator fragment's order lets a product's output fragments serve as the next
-product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimate;
-and, where nvcc is installed, that the kernels build for sm_90 without spilling registers.
+product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimates
+(one seed and many); the NumPy emulation of Adam's float32 check; and, where nvcc is installed,
+that the kernels build for sm_90 without spilling registers.
 """
 
+import json
 import shutil
 
 import numpy as np
@@ -137,6 +139,33 @@ def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
     assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
 
 
+def test_one_seed_check_reports_scalars_and_a_nan_fails_it():
+    chain_us = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
+    bound = kernel_cuda.adam_bound(5, 0.4, 5e-3)
+    (c,) = [c for c in kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10]), products=32)["checks"]
+            if c["check"] == "adam_seed_steps"]
+    assert c["ok"] and c["worst_seed"] == 0 and c["max_err_over_update"] == pytest.approx(bound / 10)
+    # C's printf writes NaN as "nan" / "-nan": read as NaN, which fails its check (not the parse)
+    line = ('{"check": "adam_seed_steps", "nsplit": 2, "threads": 256, "seeds": 2, "steps": 5, '
+            '"max_err_over_update": [1.0e-05, -nan], "max_abs_w": [0.4, inf], "max_update": [5e-3, 5e-3]}')
+    parsed = kernel_cuda.parse_lines(line + "\nnot json\n")
+    assert len(parsed) == 1 and np.isinf(parsed[0]["max_abs_w"][1])
+    bad = kernel_cuda.summarize(_lines(chain_us) + parsed, products=32)
+    assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
+
+
+def test_the_synthetic_gradient_keeps_adams_float32_error_within_its_bound():
+    """Where the earlier gradient 1e-3·w + 1e-4 crosses zero (w = −0.1), Adam's update
+    g / (|g| + ε) turns on float32's rounding of g, beyond ``adam_bound``; 1e-3·|w| + 1e-4 never
+    nears zero. Two seeds of 1 000 weights, the second holding float32(−0.1)."""
+    w0 = (0.17 * np.random.default_rng(1).standard_normal((2, 1000))).astype(np.float32)
+    w0[1, 10] = np.float32(-0.1)
+    for absolute, over in ((True, [False, False]), (False, [False, True])):
+        err, abs_w, update = kernel_cuda.adam_float32_error(w0, 5, absolute)
+        bounds = [kernel_cuda.adam_bound(5, a, u) for a, u in zip(abs_w, update)]
+        assert [bool(e > b) for e, b in zip(err, bounds)] == over
+
+
 def test_adam_bound_and_line_fit():
     # Adam's float32 update after 5 steps, weights of 0.4, updates of 5e-3: a few times 1e-4,
     # dominated by the bias correction's cancellation at the first step
@@ -158,6 +187,17 @@ def test_missing_compiler_and_bad_arguments_are_one_line(capsys):
     with pytest.raises(SystemExit):
         kernel_cuda.main(["--seeds", "0,256"])
     assert "positive seed counts" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        kernel_cuda.main(["--seed-n", "4092"])
+    assert "at least one 64 × 64 weight slot" in capsys.readouterr().err
+
+
+def test_emulation_runs_without_a_gpu(tmp_path, capsys):
+    out = tmp_path / "emulate.json"
+    assert kernel_cuda.main(["--emulate", "--seeds", "2", "--seed-n", "4096", "--out", str(out)]) == 0
+    assert "gradient 1e-3*|w|+1e-4: worst seed" in capsys.readouterr().out
+    result = json.loads(out.read_text())["emulate"]
+    assert result["1e-3*|w|+1e-4"]["seeds_over_bound"] == 0
 
 
 @pytest.mark.skipif(shutil.which("nvcc") is None, reason="nvcc not installed")
