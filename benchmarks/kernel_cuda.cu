@@ -317,8 +317,9 @@ __global__ void block_adam(AdamArgs a) {
 
 // ----------------------------------------------------------------------------------------------
 // Many seeds, one thread block each, `steps` whole steps per launch: per step `products` dependent
-// products of the seed's 32 rows on the tensor cores (tf32x3, three accumulators, the columns over
-// NSPLIT warps per row tile), product c on weight slot c % slots, then Adam over all n of the
+// products of the seed's 32 input rows (h0, read again at every step's start) on the tensor cores
+// (tf32x3, three accumulators, the columns over NSPLIT warps per row tile), product c on weight
+// slot (first_slot + c) % slots, then Adam over all n of the
 // seed's weights. The weights stay in shared memory for the whole launch (n floats, each 64 x 64
 // slot stored in B-fragment order: entry ((kk·8 + nn)·32 + lane)·2 + j is W[8kk + 2t + j][8nn + g],
 // so that a lane's two B values are one 8-byte load without bank conflicts); the moments are in
@@ -330,8 +331,8 @@ template <int NSPLIT, int THREADS>
 __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ h0, const float* __restrict__ w0,
                                                   float* __restrict__ w_out, float* __restrict__ m,
                                                   float* __restrict__ v, float* __restrict__ out, int n, int steps,
-                                                  int products, float coupling, float lr, float b1, float b2,
-                                                  float eps) {
+                                                  int products, int first_slot, float coupling, float lr, float b1,
+                                                  float b2, float eps) {
   extern __shared__ float4 shared_w4[];
   float* w = reinterpret_cast<float*>(shared_w4);
   __shared__ __align__(16) float4 X[NSPLIT > 1 ? 2 : 1][2][8][32];
@@ -346,16 +347,18 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   const int mtile = warp / NSPLIT, part = warp % NSPLIT;
   const bool chain_warp = warp < 2 * NSPLIT;
   const int r0 = 16 * mtile + g;
+  const float* h_seed = h0 + size_t(seed) * ROWS * WIDTH;
   float4 frag[8];
-  if (chain_warp) load_fragments(frag, h0 + size_t(seed) * ROWS * WIDTH, r0, t);
   __syncthreads();
   int buf = 0;
   const auto fetch = [&](int c, int kk, int nn) {
-    const float2 b = reinterpret_cast<const float2*>(w + (c % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
+    const float2 b =
+        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
     return split_b(b.x, b.y);
   };
   for (int s = 0; s < steps; ++s) {
     if (chain_warp) {
+      load_fragments(frag, h_seed, r0, t);  // each step starts from its input rows, as a minibatch does
       product_chain<3, NSPLIT, 3>(frag, NSPLIT > 1 ? X : nullptr, buf, mtile, part, lane, products, fetch);
       if (warp == 0 && lane == 0) link = frag[0].x;
     }
@@ -490,8 +493,8 @@ static std::vector<int> parse_list(const char* s) {
 
 // ----------------------------------------------------------------------------------------------
 // seed_steps: each seed's data drawn apart; checks against the host for every seed, then timings.
-typedef void (*SeedKernel)(const float*, const float*, float*, float*, float*, float*, int, int, int, float, float,
-                           float, float, float);
+typedef void (*SeedKernel)(const float*, const float*, float*, float*, float*, float*, int, int, int, int, float,
+                           float, float, float, float);
 
 // Slot `slot` of one seed's weights `src` as a [k][o] matrix (the B-fragment order undone).
 static std::vector<float> slot_matrix(const float* src, int slot) {
@@ -508,8 +511,11 @@ static std::vector<float> slot_matrix(const float* src, int slot) {
 static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, int products, int repeats,
                           std::mt19937& rng) {
   const int max_seeds = *std::max_element(seed_counts.begin(), seed_counts.end());
-  // a checked step runs every slot and wraps around to the first
-  const int slots = n / (WIDTH * WIDTH), check_chain = slots + 1, check_steps = 5;
+  // Checked chains stay short: the chain's forward-error bound grows about eightfold per product
+  // (|W|'s row sums), so beyond four products a wrong weight would pass it. One step's four products
+  // on slots 0..3, then two steps of two products from the last slot, wrapping to slot 0, the second
+  // step on the weights the first step's Adam left: every slot, the wrap and the update are checked.
+  const int slots = n / (WIDTH * WIDTH), check_steps = 5;
   const float lr = 1e-3f, b1 = 0.9f, b2 = 0.999f, eps = 1e-8f;
   const size_t smem = size_t(n) * sizeof(float);
   cudaDeviceProp prop;
@@ -569,41 +575,40 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
               threads, smem);
       return 1;
     }
-    // The products of one step, then of two: the second step's on the weights the first step's Adam
-    // left in shared memory (read back from the one-step launch), both against the chain's
-    // reference from h0, every seed.
-    for (int check_steps_of_chain : {1, 2}) {
+    struct ChainCheck {
+      int steps, products, first_slot;
+    };
+    for (const ChainCheck cc : {ChainCheck{1, std::min(4, slots), 0}, ChainCheck{2, 2, slots - 1}}) {
       zero_moments();
-      sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, check_steps_of_chain, check_chain, 0.f,
-                                          lr, b1, b2, eps);
+      sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, cc.steps, cc.products, cc.first_slot,
+                                          0.f, lr, b1, b2, eps);
       CHECK(cudaGetLastError());
       CHECK(cudaMemcpy(got_out.data(), d_out, got_out.size() * sizeof(float), cudaMemcpyDeviceToHost));
-      if (check_steps_of_chain == 1)
+      if (cc.steps == 1)  // the weights after one step (with coupling 0 Adam does not see the products)
         CHECK(cudaMemcpy(w1.data(), d_wout, w1.size() * sizeof(float), cudaMemcpyDeviceToHost));
       double worst_rel = 0.0, worst_over = 0.0;
       for (int i = 0; i < max_seeds; ++i) {
+        // the last step's chain: from the input rows, on the weights that step started with
+        const float* wsrc = (cc.steps == 1 ? ws.data() : w1.data()) + size_t(i) * n;
         std::vector<std::vector<float>> wi;
-        for (int step = 0; step < check_steps_of_chain; ++step)
-          for (int c = 0; c < check_chain; ++c)
-            wi.push_back(slot_matrix((step == 0 ? ws.data() : w1.data()) + size_t(i) * n, c % slots));
+        for (int c = 0; c < cc.products; ++c) wi.push_back(slot_matrix(wsrc, (cc.first_slot + c) % slots));
         std::vector<float> hi(ROWS * WIDTH), gi(ROWS * WIDTH);
         std::copy_n(hs.data() + size_t(i) * ROWS * WIDTH, ROWS * WIDTH, hi.data());
         std::copy_n(got_out.data() + size_t(i) * ROWS * WIDTH, ROWS * WIDTH, gi.data());
         double rel, over;
-        chain_errors(gi, reference_chain(hi, wi, int(wi.size()), gamma), &rel, &over);
+        chain_errors(gi, reference_chain(hi, wi, cc.products, gamma), &rel, &over);
         if (!(rel <= worst_rel)) worst_rel = rel;  // NaN propagates
         if (!(over <= worst_over)) worst_over = over;
       }
       printf("{\"check\": \"chain_seed_steps\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"accumulators\": 3, "
-             "\"threads\": %d, \"seeds\": %d, \"steps\": %d, \"products\": %d, \"max_rel_err\": %.3e, "
-             "\"max_err_over_bound\": %.3e}\n",
-             sv.nsplit, threads, max_seeds, check_steps_of_chain, check_steps_of_chain * check_chain, worst_rel,
-             worst_over);
+             "\"threads\": %d, \"seeds\": %d, \"steps\": %d, \"products\": %d, \"first_slot\": %d, "
+             "\"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+             sv.nsplit, threads, max_seeds, cc.steps, cc.products, cc.first_slot, worst_rel, worst_over);
     }
     // Adam over several steps, every seed: its error relative to its own update
     zero_moments();
-    sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, check_steps, check_chain, 0.f, lr, b1,
-                                        b2, eps);
+    sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, check_steps, 2, 0, 0.f, lr, b1, b2,
+                                        eps);
     CHECK(cudaGetLastError());
     CHECK(cudaMemcpy(got_w.data(), d_wout, got_w.size() * sizeof(float), cudaMemcpyDeviceToHost));
     std::string errs, abs_ws, updates;
@@ -626,14 +631,15 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
     printf("{\"check\": \"adam_seed_steps\", \"nsplit\": %d, \"threads\": %d, \"seeds\": %d, \"steps\": %d, "
            "\"max_err_over_update\": [%s], \"max_abs_w\": [%s], \"max_update\": [%s]}\n",
            sv.nsplit, threads, max_seeds, check_steps, errs.c_str(), abs_ws.c_str(), updates.c_str());
-    // timings; each line says whether the timed chains stayed finite (values do not change the
-    // tensor cores' speed, but a NaN or a flushed chain is reported rather than hidden)
+    // timings; each line says whether the timed chains' last outputs are finite (values do not change
+    // the tensor cores' speed, but a NaN is reported rather than hidden)
     for (int seeds : seed_counts)
       for (int p : {0, products}) {
         zero_moments();
         const float ms = time_launches(
             [&] {
-              sv.fn<<<seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, loop, p, 1e-9f, lr, b1, b2, eps);
+              sv.fn<<<seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, loop, p, 0, 1e-9f, lr, b1, b2,
+                                              eps);
             },
             repeats);
         CHECK(cudaGetLastError());

@@ -22,10 +22,12 @@ hand):
 - ``seed_steps``: many seeds in one launch, one thread block per seed (``--seeds``), each running
   whole steps: ``--products`` dependent tf32x3 products on weight slots held in shared memory
   (each seed's ``--seed-n`` weights stay on chip for the launch), then Adam over all of them with
-  the moments in global memory; and the same with no products (Adam alone). Every seed has data
-  of its own; each seed's products are checked against the chain's bound and its weights after
-  five steps against Adam's. This is the floor of a hand-written kernel for goal 4's 256 seeds,
-  where one seed's step cannot spread over the whole GPU.
+  the moments in global memory; and the same with no products (Adam alone). Every step starts
+  from the seed's input rows, as a minibatch does. Every seed has data of its own; each seed's
+  products are checked against the chain's bound (one step on slots 0–3; two steps from the last
+  slot wrapping to the first, the second on the weights the first step's Adam left) and its
+  weights after five steps against Adam's. This is the floor of a hand-written kernel for goal 4's
+  256 seeds, where one seed's step cannot spread over the whole GPU.
 
 Every kernel is checked against a double-precision host computation before it is timed (the
 chains entry by entry against a forward-error bound of the chain, ``reference_chain`` in the
