@@ -445,6 +445,20 @@ static double product_gamma(const char* precision) {
   return 3 * t * t * (1 + t) * (1 + t) + 3 * K * 2 * u;
 }
 
+// `steps` Adam steps from w0 with synthetic_gradient, in double with the kernels' float32 constants.
+static std::vector<double> adam_reference(const std::vector<float>& w0, int steps, double lr, double b1, double b2,
+                                          double eps) {
+  std::vector<double> w(w0.begin(), w0.end()), m(w0.size(), 0.0), v(w0.size(), 0.0);
+  for (int s = 0; s < steps; ++s)
+    for (size_t i = 0; i < w.size(); ++i) {
+      const double g = double(1e-3f) * std::fabs(w[i]) + double(1e-4f);
+      m[i] = b1 * m[i] + (1 - b1) * g;
+      v[i] = b2 * v[i] + (1 - b2) * g * g;
+      w[i] -= lr * (m[i] / (1 - std::pow(b1, s + 1))) / (std::sqrt(v[i] / (1 - std::pow(b2, s + 1))) + eps);
+    }
+  return w;
+}
+
 typedef void (*ChainKernel)(const float*, const float*, float*, int, int);
 
 struct ChainVariant {
@@ -545,15 +559,7 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
   };
 
   // Adam with synthetic_gradient (coupling 0) for every seed, in double
-  std::vector<double> wr(ws.begin(), ws.end()), mr(ws.size(), 0.0), vr(ws.size(), 0.0);
-  for (int s = 0; s < check_steps; ++s)
-    for (size_t i = 0; i < ws.size(); ++i) {
-      const double gi = double(1e-3f) * std::fabs(wr[i]) + double(1e-4f);
-      mr[i] = double(b1) * mr[i] + (1 - double(b1)) * gi;
-      vr[i] = double(b2) * vr[i] + (1 - double(b2)) * gi * gi;
-      wr[i] -= double(lr) * (mr[i] / (1 - std::pow(double(b1), s + 1))) /
-               (std::sqrt(vr[i] / (1 - std::pow(double(b2), s + 1))) + double(eps));
-    }
+  const std::vector<double> wr = adam_reference(ws, check_steps, lr, b1, b2, eps);
 
   struct SeedVariant {
     int nsplit, threads;
@@ -746,16 +752,7 @@ int main(int argc, char** argv) {
     CHECK(cudaMemset(a.v, 0, adam_n * sizeof(float)));
   };
   const int check_steps = 5;
-  std::vector<double> wr(w0.begin(), w0.end()), mr(adam_n, 0.0), vr(adam_n, 0.0);
-  // the kernels' float32 constants, in double
-  const double b1 = a.b1, b2 = a.b2, lr = a.lr, eps = a.eps;
-  for (int s = 0; s < check_steps; ++s)
-    for (int i = 0; i < adam_n; ++i) {
-      const double gi = double(1e-3f) * std::fabs(wr[i]) + double(1e-4f);
-      mr[i] = b1 * mr[i] + (1 - b1) * gi;
-      vr[i] = b2 * vr[i] + (1 - b2) * gi * gi;
-      wr[i] -= lr * (mr[i] / (1 - std::pow(b1, s + 1))) / (std::sqrt(vr[i] / (1 - std::pow(b2, s + 1))) + eps);
-    }
+  const std::vector<double> wr = adam_reference(w0, check_steps, a.lr, a.b1, a.b2, a.eps);
   // relative to the size of the update, the quantity the kernel computes
   double max_abs_w = 0.0, max_update = 0.0;
   for (int i = 0; i < adam_n; ++i) {
