@@ -32,9 +32,10 @@ hand):
 Every kernel is checked against a double-precision host computation before it is timed (the
 chains entry by entry against a forward-error bound of the chain, ``reference_chain`` in the
 .cu file; Adam against ``adam_bound``); after a failed check the benchmark still writes its JSON, then exits with an error: its
-timings are not to be used. The estimate it prints, ``--products`` dependent
-products plus the grid's Adam step, leaves out the head, the loss, the gather and the
-statistics: it is a floor of the approach, not a kernel::
+timings are not to be used. The one-seed estimate it prints, ``--products`` dependent
+products plus the grid's Adam step, and the many-seed kernel, which runs ``--products`` products
+per step, leave out the head, the loss, the gather and the statistics: they are floors of the
+approach, not kernels::
 
     python -m benchmarks.kernel_cuda --out kernel_cuda.json
 
@@ -234,8 +235,9 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=5, help="timed launches (the fastest counts)")
     p.add_argument("--adam-n", type=int, default=41_600, help="Adam's entries (GMR's packed θ)")
     p.add_argument("--adam-steps", type=int, default=2000, help="Adam steps per launch")
-    p.add_argument("--products", type=int, default=32, help="products per GMR Adam step in the estimate "
-                   "(11 forward, 11 weight gradients, 10 input gradients)")
+    p.add_argument("--products", type=int, default=32, help="products per GMR Adam step (11 forward, 11 weight "
+                   "gradients, 10 input gradients): in the one-seed estimate, and the products each step of the "
+                   "many-seed kernel runs")
     p.add_argument("--seeds", default="1,132,256", help="comma-separated seed counts for the many-seed "
                    "kernel (one thread block per seed)")
     p.add_argument("--seed-n", type=int, default=22_664, help="each seed's weights in the many-seed kernel "
@@ -307,8 +309,10 @@ def main(argv=None) -> int:
     for c in summary["checks"]:
         if "max_err_over_bound" in c:
             threads = f" {c['threads']} threads" if "seeds" in c else ""
+            width = (f" (bound at most {c['max_bound_over_max_h']:.1e} of max|h|)"
+                     if "max_bound_over_max_h" in c else "")
             what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}{threads}: max error "
-                    f"{c['max_rel_err']:.2e} of max|h|, {c['max_err_over_bound']:.2e} of its bound")
+                    f"{c['max_rel_err']:.2e} of max|h|, {c['max_err_over_bound']:.2e} of its bound{width}")
         else:
             seeds = f", worst of {c['seeds']} seeds" if "seeds" in c else ""
             what = (f"{c['threads']:4d} threads: max error {c['max_err_over_update']:.2e} of the update "

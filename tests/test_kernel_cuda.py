@@ -134,6 +134,16 @@ def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
     assert e["step"]["us_per_step"] == 60.0 and e["step"]["run_s"] == pytest.approx(60.0 * 1000 * 1e-6)
     assert e["adam_alone"]["us_per_step"] == 28.0
     assert e["us_per_step"]["split1_256threads_1seeds_32products"] == pytest.approx(8.0)
+    assert e["chains_not_finite"] == []
+    # a timed chain that ended non-finite is named; a seed chain check goes through like the others
+    lines = _lines(chain_us) + _seed_lines([bound / 10] * 3)
+    lines[-1] = {**lines[-1], "out_finite": False}
+    lines.append({"check": "chain_seed_steps", "precision": "tf32x3", "nsplit": 2, "accumulators": 3,
+                  "threads": 256, "seeds": 3, "steps": 2, "products": 2, "first_slot": 4, "max_rel_err": 1e-6,
+                  "max_err_over_bound": 2.5, "max_bound_over_max_h": 3e-4})
+    s = kernel_cuda.summarize(lines, products=32)
+    assert s["seed_steps"]["chains_not_finite"] == ["split2_256threads_256seeds_32products"]
+    assert [c["check"] for c in s["failed_checks"]] == ["chain_seed_steps"]
     # one seed beyond its own bound fails the check, and the check names it
     bad = kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10, bound * 1.01, bound / 10]), products=32)
     assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
@@ -150,6 +160,7 @@ def test_one_seed_check_reports_scalars_and_a_nan_fails_it():
             '"max_err_over_update": [1.0e-05, -nan], "max_abs_w": [0.4, inf], "max_update": [5e-3, 5e-3]}')
     parsed = kernel_cuda.parse_lines(line + "\nnot json\n")
     assert len(parsed) == 1 and np.isinf(parsed[0]["max_abs_w"][1])
+    assert kernel_cuda.parse_lines('{"a": -inf, "b": "info"}') == [{"a": -np.inf, "b": "info"}]
     bad = kernel_cuda.summarize(_lines(chain_us) + parsed, products=32)
     assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
 
