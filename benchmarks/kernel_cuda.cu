@@ -239,6 +239,98 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
 }
 
 // ----------------------------------------------------------------------------------------------
+// Hopper's warpgroup products (wgmma.mma_async m64n64k8, TF32 operands, float32 accumulators): the
+// same chain with one warpgroup (4 warps, 64 rows, of which the minibatch's 32 are real and the
+// other two warps' rows zero), A from registers in the same permuted fragments as chain_mma, B in
+// shared memory. Built only for sm_90a (kernel_cuda.py defines KERNEL_CUDA_WGMMA there).
+#ifdef KERNEL_CUDA_WGMMA
+// B of k-step kk, K-major, in core matrices of 8 columns × 4 k (16-byte rows), no swizzle: core
+// (kc, nc) at 128·kc + 256·nc bytes, inside it n_local·16 + k_local·4 bytes; k_local holds W's row
+// 8kk + 2·k_local (k_local < 4) or 8kk + 2·(k_local − 4) + 1, the A fragments' column order.
+__device__ __forceinline__ uint64_t b_descriptor(const void* p) {
+  const uint32_t addr = static_cast<uint32_t>(__cvta_generic_to_shared(p));
+  return uint64_t((addr & 0x3FFFF) >> 4) | (uint64_t(128 >> 4) << 16) | (uint64_t(256 >> 4) << 32);
+}
+
+__device__ __forceinline__ void wgmma_tf32(float (&d)[32], const uint32_t (&a)[4], uint64_t b, int accumulate) {
+  asm volatile(
+      "{\n.reg .pred p;\nsetp.ne.b32 p, %37, 0;\n"
+      "wgmma.mma_async.sync.aligned.m64n64k8.f32.tf32.tf32 "
+      "{%0,%1,%2,%3,%4,%5,%6,%7,%8,%9,%10,%11,%12,%13,%14,%15,%16,%17,%18,%19,%20,%21,%22,%23,%24,%25,%26,%27,"
+      "%28,%29,%30,%31}, {%32,%33,%34,%35}, %36, p, 1, 1;\n}\n"
+      : "+f"(d[0]), "+f"(d[1]), "+f"(d[2]), "+f"(d[3]), "+f"(d[4]), "+f"(d[5]), "+f"(d[6]), "+f"(d[7]), "+f"(d[8]),
+        "+f"(d[9]), "+f"(d[10]), "+f"(d[11]), "+f"(d[12]), "+f"(d[13]), "+f"(d[14]), "+f"(d[15]), "+f"(d[16]),
+        "+f"(d[17]), "+f"(d[18]), "+f"(d[19]), "+f"(d[20]), "+f"(d[21]), "+f"(d[22]), "+f"(d[23]), "+f"(d[24]),
+        "+f"(d[25]), "+f"(d[26]), "+f"(d[27]), "+f"(d[28]), "+f"(d[29]), "+f"(d[30]), "+f"(d[31])
+      : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "l"(b), "r"(accumulate));
+}
+
+template <int PASSES, int ACCS>
+__global__ void __launch_bounds__(128) chain_wgmma(const float* __restrict__ h0, const float* __restrict__ w,
+                                                   float* __restrict__ out, int steps, int chain) {
+  static_assert(ACCS == 1 || (ACCS == 3 && PASSES == 3), "one accumulator, or one per pass of three");
+  __shared__ __align__(128) uint32_t Bhi[8][512];
+  __shared__ __align__(128) uint32_t Blo[PASSES == 3 ? 8 : 1][512];
+  for (int i = threadIdx.x; i < 8 * 512; i += blockDim.x) {
+    const int kk = i / 512, r = i % 512;
+    const int nc = r / 64, kc = (r % 64) / 32, n_local = (r % 32) / 4, k_local = 4 * kc + r % 4;
+    const int row = 8 * kk + (k_local < 4 ? 2 * k_local : 2 * (k_local - 4) + 1);
+    const BFragment b = split_b(w[row * WIDTH + 8 * nc + n_local], 0.f);
+    Bhi[kk][r] = b.hi.x;
+    if (PASSES == 3) Blo[kk][r] = b.lo.x;
+  }
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32, t = lane % 4;
+  const int r0 = 16 * warp + lane / 4;
+  float4 frag[8];
+  if (warp < 2) load_fragments(frag, h0, r0, t);
+  else
+    for (int kk = 0; kk < 8; ++kk) frag[kk] = make_float4(0.f, 0.f, 0.f, 0.f);  // the padding rows
+  __syncthreads();
+  float d[32], d1[32], d2[32];
+  for (int s = 0; s < steps; ++s)
+    for (int c = 0; c < chain; ++c) {
+      uint32_t ahi[8][4], alo[8][4];
+#pragma unroll
+      for (int kk = 0; kk < 8; ++kk) {
+        const float f[4] = {frag[kk].x, frag[kk].y, frag[kk].z, frag[kk].w};
+#pragma unroll
+        for (int e = 0; e < 4; ++e) {
+          ahi[kk][e] = to_tf32(f[e]);
+          alo[kk][e] = PASSES == 3 ? to_tf32(f[e] - __uint_as_float(ahi[kk][e])) : 0u;
+        }
+      }
+      asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
+#pragma unroll
+      for (int kk = 0; kk < 8; ++kk) {
+        if constexpr (PASSES == 3 && ACCS == 3) {
+          wgmma_tf32(d, alo[kk], b_descriptor(Bhi[kk]), kk > 0);
+          wgmma_tf32(d1, ahi[kk], b_descriptor(Blo[kk]), kk > 0);
+          wgmma_tf32(d2, ahi[kk], b_descriptor(Bhi[kk]), kk > 0);
+        } else if constexpr (PASSES == 3) {
+          wgmma_tf32(d, alo[kk], b_descriptor(Bhi[kk]), kk > 0);
+          wgmma_tf32(d, ahi[kk], b_descriptor(Blo[kk]), 1);
+          wgmma_tf32(d, ahi[kk], b_descriptor(Bhi[kk]), 1);
+        } else {
+          wgmma_tf32(d, ahi[kk], b_descriptor(Bhi[kk]), kk > 0);
+        }
+      }
+      asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
+      asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+      if constexpr (ACCS == 3) {
+#pragma unroll
+        for (int i = 0; i < 32; ++i) d[i] = (d[i] + d1[i]) + d2[i];
+      }
+      // accumulator register 4j + (0, 1, 2, 3) is (row g, col 8j + 2t), (g, 8j + 2t + 1), (g + 8, 8j + 2t),
+      // (g + 8, 8j + 2t + 1), the c0..c3 of mma.sync's n-tile j: the next A fragments as in chain_mma
+#pragma unroll
+      for (int j = 0; j < 8; ++j)
+        frag[j] = make_float4(leaky(d[4 * j]), leaky(d[4 * j + 2]), leaky(d[4 * j + 1]), leaky(d[4 * j + 3]));
+    }
+  if (warp < 2) store_fragments(frag, out, r0, t);
+}
+#endif
+
+// ----------------------------------------------------------------------------------------------
 // Adam on n parameters per step. The gradient stands for what the step's products would give:
 // g = 1e-3·|w| + 1e-4, read from the weights so that each step depends on the last, and never near
 // zero: where g crosses zero Adam's update g / (|g| + eps) turns on float32's rounding of g alone,
@@ -724,6 +816,11 @@ int main(int argc, char** argv) {
       {"chain_mma", "tf32x3", 2, 1, 128, chain_mma<3, 2, 1>},
       {"chain_mma", "tf32x3", 2, 3, 128, chain_mma<3, 2, 3>},
       {"chain_mma", "tf32x3", 4, 1, 256, chain_mma<3, 4, 1>},
+#ifdef KERNEL_CUDA_WGMMA
+      {"chain_wgmma", "tf32", 0, 1, 128, chain_wgmma<1, 1>},
+      {"chain_wgmma", "tf32x3", 0, 1, 128, chain_wgmma<3, 1>},
+      {"chain_wgmma", "tf32x3", 0, 3, 128, chain_wgmma<3, 3>},
+#endif
   };
   const int check_chain = 4;
   const std::vector<std::vector<float>> one_weight{w};

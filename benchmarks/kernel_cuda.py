@@ -15,6 +15,9 @@ hand):
   in the order of an accumulator fragment, so no shuffle and no shared memory sits between two
   products), or with the columns split over 2 or 4 warps that exchange fragments through shared
   memory. The least-squares slope over the chain lengths is one dependent product.
+- ``chain_wgmma`` (sm_90a only): the same chain with Hopper's warpgroup products (``wgmma``,
+  m64n64k8, A from registers in the same fragments, B in shared memory), one warpgroup, the
+  minibatch's 32 rows padded to 64.
 - ``grid_adam``: Adam on ``--adam-n`` entries (GMR's packed θ: 41 600) per step, spread over a
   cooperative grid of one block per multiprocessor between two grid-wide syncs (block 0 reads the
   weights and writes a gradient first, as the block that forms the products would); the syncs
@@ -128,10 +131,31 @@ def line_fit(points: list[tuple[float, float]]) -> tuple[float, float]:
     return float(slope), float(intercept)
 
 
+def resolve_arch(arch: str) -> str:
+    """``native`` on a Hopper GPU (compute capability 9.0) -> ``sm_90a``, whose warpgroup products
+    (``chain_wgmma``) need the architecture-specific target; anything else as given."""
+    if arch != "native":
+        return arch
+    try:
+        cap = subprocess.run(["nvidia-smi", "--query-gpu=compute_cap", "--format=csv,noheader"],
+                             capture_output=True, text=True, timeout=30).stdout.split()
+    except (OSError, subprocess.SubprocessError):
+        return arch
+    return "sm_90a" if cap[:1] == ["9.0"] else arch
+
+
+def nvcc_arch_flags(arch: str) -> list[str]:
+    """nvcc's flags for ``arch``: sm_90a compiles the architecture-specific PTX and the warpgroup
+    kernels (``-DKERNEL_CUDA_WGMMA``); other targets build without them."""
+    if arch == "sm_90a":
+        return ["-gencode", "arch=compute_90a,code=sm_90a", "-DKERNEL_CUDA_WGMMA"]
+    return [f"-arch={arch}"]
+
+
 def build(nvcc: str, arch: str, out_dir: str) -> tuple[Path, str]:
     """Compile kernel_cuda.cu -> (executable, ptxas's report)."""
     exe = Path(out_dir) / "kernel_cuda"
-    cmd = [nvcc, "-O3", "-std=c++17", f"-arch={arch}", "-Xptxas", "-v", "-o", str(exe), str(SOURCE)]
+    cmd = [nvcc, "-O3", "-std=c++17", *nvcc_arch_flags(arch), "-Xptxas", "-v", "-o", str(exe), str(SOURCE)]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise SystemExit(f"kernel_cuda: nvcc failed ({' '.join(cmd)}):\n{res.stderr[-3000:]}")
@@ -249,7 +273,8 @@ def main(argv=None) -> int:
                    "NumPy (float32 against float64) for the synthetic gradient and the earlier one, which crossed "
                    "zero; needs no GPU")
     p.add_argument("--nvcc", default="nvcc", help="the CUDA compiler")
-    p.add_argument("--arch", default="native", help="nvcc's -arch (native: the GPU present)")
+    p.add_argument("--arch", default="native", help="nvcc's -arch (native: the GPU present, sm_90a on a Hopper "
+                   "GPU, which adds the warpgroup products)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
     try:
@@ -291,7 +316,7 @@ def main(argv=None) -> int:
                          "toolkit or pass --nvcc PATH (this benchmark needs an NVIDIA GPU)")
     version = subprocess.run([nvcc, "--version"], capture_output=True, text=True).stdout.strip().splitlines()[-1]
     with tempfile.TemporaryDirectory() as tmp:
-        exe, report = build(nvcc, args.arch, tmp)
+        exe, report = build(nvcc, resolve_arch(args.arch), tmp)
         cmd = [str(exe), ",".join(map(str, chains)), str(args.steps), str(args.repeats), str(args.adam_n),
                str(args.adam_steps), ",".join(map(str, seed_counts)), str(args.seed_n), str(args.seed_steps),
                str(args.products)]

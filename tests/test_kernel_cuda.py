@@ -212,9 +212,12 @@ def test_emulation_runs_without_a_gpu(tmp_path, capsys):
 
 
 @pytest.mark.skipif(shutil.which("nvcc") is None, reason="nvcc not installed")
-def test_kernels_build_for_hopper_without_spills(tmp_path):
-    exe, report = kernel_cuda.build("nvcc", "sm_90", str(tmp_path))
+@pytest.mark.parametrize("arch, wgmma", [("sm_90", False), ("sm_90a", True)])
+def test_kernels_build_for_hopper_without_spills(tmp_path, arch, wgmma):
+    exe, report = kernel_cuda.build("nvcc", arch, str(tmp_path))
     assert exe.exists()
     for kernel in ("chain_fma", "chain_mma", "grid_adam", "block_adam", "seed_steps"):
         assert kernel in report
+    # the warpgroup products need the architecture-specific target
+    assert ("chain_wgmma" in report) == wgmma
     assert kernel_cuda.spills(report) == 0
