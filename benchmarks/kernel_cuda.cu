@@ -240,8 +240,8 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
 
 // ----------------------------------------------------------------------------------------------
 // Hopper's warpgroup products (wgmma.mma_async m64n64k8, TF32 operands, float32 accumulators): the
-// same chain with one warpgroup (4 warps, 64 rows, of which the minibatch's 32 are real and the
-// other two warps' rows zero), A from registers in the same permuted fragments as chain_mma, B in
+// same chain with one warpgroup (4 warps, 64 rows: the chain's 32, the minibatch's 20 padded, and
+// the other two warps' rows zero), A from registers in the same permuted fragments as chain_mma, B in
 // shared memory. Built only for sm_90a (kernel_cuda.py defines KERNEL_CUDA_WGMMA there).
 #ifdef KERNEL_CUDA_WGMMA
 // B of k-step kk, K-major, in core matrices of 8 columns × 4 k (16-byte rows), no swizzle: core
@@ -279,6 +279,8 @@ __global__ void __launch_bounds__(128) chain_wgmma(const float* __restrict__ h0,
     Bhi[kk][r] = b.hi.x;
     if (PASSES == 3) Blo[kk][r] = b.lo.x;
   }
+  // wgmma reads B through the async proxy: make the ordinary stores above visible to it
+  asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
   const int lane = threadIdx.x % 32, warp = threadIdx.x / 32, t = lane % 4;
   const int r0 = 16 * warp + lane / 4;
   float4 frag[8];

@@ -17,7 +17,7 @@ hand):
   memory. The least-squares slope over the chain lengths is one dependent product.
 - ``chain_wgmma`` (sm_90a only): the same chain with Hopper's warpgroup products (``wgmma``,
   m64n64k8, A from registers in the same fragments, B in shared memory), one warpgroup, the
-  minibatch's 32 rows padded to 64.
+  chain's 32 rows (the minibatch's 20, padded) padded again to 64.
 - ``grid_adam``: Adam on ``--adam-n`` entries (GMR's packed θ: 41 600) per step, spread over a
   cooperative grid of one block per multiprocessor between two grid-wide syncs (block 0 reads the
   weights and writes a gradient first, as the block that forms the products would); the syncs
@@ -132,8 +132,9 @@ def line_fit(points: list[tuple[float, float]]) -> tuple[float, float]:
 
 
 def resolve_arch(arch: str) -> str:
-    """``native`` on a Hopper GPU (compute capability 9.0) -> ``sm_90a``, whose warpgroup products
-    (``chain_wgmma``) need the architecture-specific target; anything else as given."""
+    """``native`` on a host whose GPUs are all Hopper (compute capability 9.0) -> ``sm_90a``, whose
+    warpgroup products (``chain_wgmma``) need the architecture-specific target; anything else,
+    or no answer from nvidia-smi, as given."""
     if arch != "native":
         return arch
     try:
@@ -141,7 +142,8 @@ def resolve_arch(arch: str) -> str:
                              capture_output=True, text=True, timeout=30).stdout.split()
     except (OSError, subprocess.SubprocessError):
         return arch
-    return "sm_90a" if cap[:1] == ["9.0"] else arch
+    # every GPU listed (nvidia-smi does not follow CUDA_VISIBLE_DEVICES), so that a mixed host keeps native
+    return "sm_90a" if cap and all(c == "9.0" for c in cap) else arch
 
 
 def nvcc_arch_flags(arch: str) -> list[str]:

@@ -177,6 +177,27 @@ def test_the_synthetic_gradient_keeps_adams_float32_error_within_its_bound():
         assert [bool(e > b) for e, b in zip(err, bounds)] == over
 
 
+def test_native_resolves_to_sm90a_on_hopper_only(monkeypatch):
+    import subprocess
+
+    def answers(stdout):
+        return lambda *a, **k: subprocess.CompletedProcess(a, 0, stdout=stdout, stderr="")
+
+    for stdout, arch in (("9.0\n", "sm_90a"), ("9.0\n9.0\n", "sm_90a"), ("9.0\n8.0\n", "native"),
+                         ("8.9\n", "native"), ("", "native")):
+        monkeypatch.setattr(kernel_cuda.subprocess, "run", answers(stdout))
+        assert kernel_cuda.resolve_arch("native") == arch
+    assert kernel_cuda.resolve_arch("sm_80") == "sm_80"
+
+    def missing(*a, **k):
+        raise FileNotFoundError("nvidia-smi")
+
+    monkeypatch.setattr(kernel_cuda.subprocess, "run", missing)
+    assert kernel_cuda.resolve_arch("native") == "native"
+    assert kernel_cuda.nvcc_arch_flags("sm_90a")[-1] == "-DKERNEL_CUDA_WGMMA"
+    assert kernel_cuda.nvcc_arch_flags("sm_90") == ["-arch=sm_90"]
+
+
 def test_adam_bound_and_line_fit():
     # Adam's float32 update after 5 steps, weights of 0.4, updates of 5e-3: a few times 1e-4,
     # dominated by the bias correction's cancellation at the first step
