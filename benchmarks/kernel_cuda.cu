@@ -359,14 +359,20 @@ __device__ __forceinline__ float adam_one(float& w, float& m, float& v, float g,
 }
 
 // entries 4i .. 4i+3 (16-byte loads and stores: n is a multiple of 4)
-__device__ __forceinline__ void adam_quad(const AdamArgs& a, int i, float c1, float c2) {
-  const float4 g = reinterpret_cast<const float4*>(a.g)[i];
-  float4 w = reinterpret_cast<float4*>(a.w)[i], m = reinterpret_cast<float4*>(a.m)[i],
-         v = reinterpret_cast<float4*>(a.v)[i];
+// four entries' Adam update in registers
+__device__ __forceinline__ void adam_four(float4& w, float4& m, float4& v, float4 g, float c1, float c2,
+                                          const AdamArgs& a) {
   adam_one(w.x, m.x, v.x, g.x, c1, c2, a);
   adam_one(w.y, m.y, v.y, g.y, c1, c2, a);
   adam_one(w.z, m.z, v.z, g.z, c1, c2, a);
   adam_one(w.w, m.w, v.w, g.w, c1, c2, a);
+}
+
+__device__ __forceinline__ void adam_quad(const AdamArgs& a, int i, float c1, float c2) {
+  const float4 g = reinterpret_cast<const float4*>(a.g)[i];
+  float4 w = reinterpret_cast<float4*>(a.w)[i], m = reinterpret_cast<float4*>(a.m)[i],
+         v = reinterpret_cast<float4*>(a.v)[i];
+  adam_four(w, m, v, g, c1, c2, a);
   reinterpret_cast<float4*>(a.w)[i] = w;
   reinterpret_cast<float4*>(a.m)[i] = m;
   reinterpret_cast<float4*>(a.v)[i] = v;
@@ -462,10 +468,9 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
     const AdamArgs a{nullptr, nullptr, nullptr, nullptr, n, steps, lr, b1, b2, eps};
     for (int i = threadIdx.x; i < quads; i += blockDim.x) {
       float4 wq = shared_w4[i], mq = m4[i], vq = v4[i];
-      adam_one(wq.x, mq.x, vq.x, synthetic_gradient(wq.x) + h, c1, c2, a);
-      adam_one(wq.y, mq.y, vq.y, synthetic_gradient(wq.y) + h, c1, c2, a);
-      adam_one(wq.z, mq.z, vq.z, synthetic_gradient(wq.z) + h, c1, c2, a);
-      adam_one(wq.w, mq.w, vq.w, synthetic_gradient(wq.w) + h, c1, c2, a);
+      const float4 g = make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
+                                   synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h);
+      adam_four(wq, mq, vq, g, c1, c2, a);
       shared_w4[i] = wq;
       m4[i] = mq;
       v4[i] = vq;

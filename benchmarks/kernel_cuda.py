@@ -76,9 +76,9 @@ def adam_bound(steps: int, max_abs_w: float, max_update: float, b2: float = 0.99
 
 def adam_float32_error(w0: np.ndarray, steps: int, absolute: bool = True, lr: float = 1e-3, b1: float = 0.9,
                        b2: float = 0.999, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``steps`` Adam steps in float32 against the same in float64 (NumPy), with the kernels'
-    synthetic gradient 1e-3·|w| + 1e-4 (``absolute``) or the earlier 1e-3·w + 1e-4, which crosses
-    zero at w = −0.1.
+    """``steps`` Adam steps in float32 against the same in float64 (NumPy, the kernels' formulas and
+    float32 constants), with the kernels' synthetic gradient 1e-3·|w| + 1e-4 (``absolute``) or the
+    earlier 1e-3·w + 1e-4, which crosses zero at w = −0.1.
 
     Args:
       w0: [S, n] float32 starting weights (one row per seed).
@@ -86,22 +86,20 @@ def adam_float32_error(w0: np.ndarray, steps: int, absolute: bool = True, lr: fl
       per row: (max|w32 − w64| / max|w64 − w0|, max|w64|, max|w64 − w0|), the quantities the
       kernels' checks hold against ``adam_bound``.
     """
-    f = np.float32
-    grad = (lambda w, c: c(1e-3) * np.abs(w) + c(1e-4)) if absolute else (lambda w, c: c(1e-3) * w + c(1e-4))
-    w0 = np.asarray(w0, f)
-    w, m, v = w0.copy(), np.zeros_like(w0), np.zeros_like(w0)
-    wr, mr, vr = w0.astype(np.float64), np.zeros(w0.shape), np.zeros(w0.shape)
-    for s in range(steps):
-        g = grad(w, f)
-        m = f(b1) * m + (f(1) - f(b1)) * g
-        v = f(b2) * v + (f(1) - f(b2)) * g * g
-        c1, c2 = f(1) / (f(1) - f(b1) ** f(s + 1)), f(1) / (f(1) - f(b2) ** f(s + 1))
-        w = w - f(lr) * (m * c1) / (np.sqrt(v * c2) + f(eps))
-        gr = grad(wr, lambda x: float(f(x)))
-        mr = float(f(b1)) * mr + (1 - float(f(b1))) * gr
-        vr = float(f(b2)) * vr + (1 - float(f(b2))) * gr * gr
-        wr = wr - float(f(lr)) * (mr / (1 - float(f(b1)) ** (s + 1))) / (
-            np.sqrt(vr / (1 - float(f(b2)) ** (s + 1))) + float(f(eps)))
+    w0 = np.asarray(w0, np.float32)
+
+    def run(dtype):
+        c = lambda x: dtype(np.float32(x))  # noqa: E731  (the kernels' float32 constants)
+        w, m, v = w0.astype(dtype), np.zeros(w0.shape, dtype), np.zeros(w0.shape, dtype)
+        for s in range(steps):
+            g = c(1e-3) * (np.abs(w) if absolute else w) + c(1e-4)
+            m = c(b1) * m + (dtype(1) - c(b1)) * g
+            v = c(b2) * v + (dtype(1) - c(b2)) * g * g
+            c1, c2 = dtype(1) / (dtype(1) - c(b1) ** dtype(s + 1)), dtype(1) / (dtype(1) - c(b2) ** dtype(s + 1))
+            w = w - c(lr) * (m * c1) / (np.sqrt(v * c2) + c(eps))
+        return w
+
+    w, wr = run(np.float32), run(np.float64)
     update = np.abs(wr - w0).max(axis=-1)
     return np.abs(w - wr).max(axis=-1) / update, np.abs(wr).max(axis=-1), update
 

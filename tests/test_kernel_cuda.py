@@ -8,7 +8,7 @@ of ``mma.m16n8k8``'s fragments (PTX's layout, one 16-row tile, 32 lanes) shows t
 rows in an accumulator fragment's order lets a product's output fragments serve as the next
 product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimates
 (one seed and many); the NumPy emulation of Adam's float32 check; and, where nvcc is installed,
-that the kernels build for sm_90 without spilling registers.
+that the kernels build for sm_90 and sm_90a without spilling registers.
 """
 
 import json
@@ -20,6 +20,8 @@ import pytest
 from benchmarks import kernel_cuda
 
 SLOPE = 0.2
+# chain timings of the synthetic executable output: precision -> (µs besides, µs per product)
+CHAIN_US = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
 
 
 def _lanes():
@@ -71,7 +73,7 @@ def test_output_fragments_are_the_next_products_input_fragments():
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12 * np.max(np.abs(ref)))
 
 
-def _lines(chain_us, over_bound=1e-2):
+def _lines(chain_us=CHAIN_US, over_bound=1e-2):
     """Executable output: a device line, checks, chain timings (µs = a + b·chain) and Adam."""
     lines = [{"device": "GPU", "multiprocessors": 132, "sm": "9.0"}]
     for precision, nsplit, threads, ratio in (("ieee", 0, 256, 1e-3), ("tf32", 1, 64, 1e-2),
@@ -91,8 +93,7 @@ def _lines(chain_us, over_bound=1e-2):
 
 
 def test_summary_fits_checks_and_estimate():
-    chain_us = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
-    s = kernel_cuda.summarize(_lines(chain_us), products=32)
+    s = kernel_cuda.summarize(_lines(), products=32)
     assert not s["failed_checks"] and all(c["ok"] for c in s["checks"])
     fits = s["chain_fits"]
     assert fits["chain_mma_tf32x3_split2_acc1_128threads"]["us_per_product"] == pytest.approx(0.7)
@@ -104,7 +105,7 @@ def test_summary_fits_checks_and_estimate():
     assert est["adam_kernel"] == "grid_adam_update_1024threads"
     assert est["us_per_step"] == pytest.approx(32 * 0.7 + 7.0)
     # an entry beyond the chain's forward-error bound fails the check
-    bad = kernel_cuda.summarize(_lines(chain_us, over_bound=1.5), products=32)
+    bad = kernel_cuda.summarize(_lines(over_bound=1.5), products=32)
     assert [c["precision"] for c in bad["failed_checks"]] == ["tf32x3"]
 
 
@@ -124,9 +125,8 @@ def _seed_lines(errs):
 
 
 def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
-    chain_us = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
     bound = kernel_cuda.adam_bound(5, 0.4, 5e-3)
-    s = kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10] * 3), products=32, run_steps=1000)
+    s = kernel_cuda.summarize(_lines() + _seed_lines([bound / 10] * 3), products=32, run_steps=1000)
     assert not s["failed_checks"]
     e = s["seed_steps"]
     # the fastest variant at the largest seed count, with the products and with Adam alone
@@ -136,7 +136,7 @@ def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
     assert e["us_per_step"]["split1_256threads_1seeds_32products"] == pytest.approx(8.0)
     assert e["chains_not_finite"] == []
     # a timed chain that ended non-finite is named; a seed chain check goes through like the others
-    lines = _lines(chain_us) + _seed_lines([bound / 10] * 3)
+    lines = _lines() + _seed_lines([bound / 10] * 3)
     lines[-1] = {**lines[-1], "out_finite": False}
     lines.append({"check": "chain_seed_steps", "precision": "tf32x3", "nsplit": 2, "accumulators": 3,
                   "threads": 256, "seeds": 3, "steps": 2, "products": 2, "first_slot": 4, "max_rel_err": 1e-6,
@@ -145,14 +145,13 @@ def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
     assert s["seed_steps"]["chains_not_finite"] == ["split2_256threads_256seeds_32products"]
     assert [c["check"] for c in s["failed_checks"]] == ["chain_seed_steps"]
     # one seed beyond its own bound fails the check, and the check names it
-    bad = kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10, bound * 1.01, bound / 10]), products=32)
+    bad = kernel_cuda.summarize(_lines() + _seed_lines([bound / 10, bound * 1.01, bound / 10]), products=32)
     assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
 
 
 def test_one_seed_check_reports_scalars_and_a_nan_fails_it():
-    chain_us = {"ieee": (0.05, 1.5), "tf32": (0.08, 0.5), "tf32x3": (0.04, 0.7)}
     bound = kernel_cuda.adam_bound(5, 0.4, 5e-3)
-    (c,) = [c for c in kernel_cuda.summarize(_lines(chain_us) + _seed_lines([bound / 10]), products=32)["checks"]
+    (c,) = [c for c in kernel_cuda.summarize(_lines() + _seed_lines([bound / 10]), products=32)["checks"]
             if c["check"] == "adam_seed_steps"]
     assert c["ok"] and c["worst_seed"] == 0 and c["max_err_over_update"] == pytest.approx(bound / 10)
     # C's printf writes NaN as "nan" / "-nan": read as NaN, which fails its check (not the parse)
@@ -161,7 +160,7 @@ def test_one_seed_check_reports_scalars_and_a_nan_fails_it():
     parsed = kernel_cuda.parse_lines(line + "\nnot json\n")
     assert len(parsed) == 1 and np.isinf(parsed[0]["max_abs_w"][1])
     assert kernel_cuda.parse_lines('{"a": -inf, "b": "info"}') == [{"a": -np.inf, "b": "info"}]
-    bad = kernel_cuda.summarize(_lines(chain_us) + parsed, products=32)
+    bad = kernel_cuda.summarize(_lines() + parsed, products=32)
     assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
 
 
