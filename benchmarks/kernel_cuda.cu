@@ -1,7 +1,7 @@
 // The floor of a hand-written CUDA S-step: dependent products and a grid-wide Adam update.
 //
 // Built and run by benchmarks/kernel_cuda.py (nvcc for the GPU at hand); prints one JSON object
-// per line. Four kinds of kernels, each checked against a double-precision host reference
+// per line. Five kinds of kernels, each checked against a double-precision host reference
 // before it is timed:
 //
 //   chain_fma   one thread block of 256 threads; the loop body is `chain` dependent products
@@ -15,6 +15,10 @@
 //               rows' activations in registers from product to product, with no shared memory and
 //               no barrier. With `nsplit` = 2 or 4 the 64 output columns are split over that many
 //               warps, which exchange their fragments through shared memory with a named barrier.
+//   chain_cluster the tf32x3 chain over a thread-block cluster of 2, 4 or 8 blocks (sm_90): the
+//               columns split over every block's warps, each product's output fragments stored into
+//               every block's shared memory, then the cluster's barrier; cluster_adam, Adam over a
+//               cluster with the cluster's barrier after every step.
 //   grid_adam   Adam on n parameters per step, split over a cooperative grid of one block per
 //               multiprocessor: block 0 reads the weights and writes a gradient (as the block
 //               that forms the step's products would), grid sync, every block updates its slice
@@ -128,16 +132,54 @@ __device__ __forceinline__ BFragment split_b(float v0, float v1) {
   return {make_uint2(h0b, h1b), make_uint2(to_tf32(v0 - __uint_as_float(h0b)), to_tf32(v1 - __uint_as_float(h1b)))};
 }
 
+// How the warps that share a row tile's columns pass their output fragments on: put(nn, v) stores
+// this lane's fragment of n-tile nn, sync(frag) waits for every part and loads all 8 fragments.
+// Both double-buffer their fragments (`buf` flips at every sync), so that one barrier per product
+// suffices: a part writes a buffer again only after every part has passed the barrier that follows
+// its reads of it.
+// TileExchange: the warps of one block, through its shared memory X, at named barrier 1 + mtile.
+struct TileExchange {
+  float4 (*X)[2][8][32];
+  int buf, mtile, lane, threads;
+  __device__ __forceinline__ void put(int nn, float4 v) { X[buf][mtile][nn][lane] = v; }
+  __device__ __forceinline__ void sync(float4 (&frag)[8]) {
+    asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(threads) : "memory");
+#pragma unroll
+    for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
+    buf ^= 1;
+  }
+};
+
+// ClusterExchange: the blocks of a thread-block cluster (Hopper), each fragment stored into X of
+// every block of the cluster (distributed shared memory; ranks[r] is block r's X, this block's
+// included), then the cluster's barrier (release / acquire), then this block's X read.
+template <int CLUSTER>
+struct ClusterExchange {
+  float4 (*X)[2][8][32];
+  float4 (*ranks[CLUSTER])[2][8][32];
+  int buf, mtile, lane;
+  __device__ __forceinline__ void put(int nn, float4 v) {
+#pragma unroll
+    for (int r = 0; r < CLUSTER; ++r) ranks[r][buf][mtile][nn][lane] = v;
+  }
+  __device__ __forceinline__ void sync(float4 (&frag)[8]) {
+    cg::this_cluster().sync();
+#pragma unroll
+    for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
+    buf ^= 1;
+  }
+};
+
 // `chain` dependent products frag <- leaky(frag W_c) of one warp's share of one 16-row tile, on the
-// tensor cores; fetch(c, kk, nn) gives W_c's B fragment (kk, nn) for this lane. With NSPLIT > 1 the
-// warps of a row tile exchange their output fragments through X (double-buffered; `buf` flips) at
-// named barrier 1 + mtile.
+// tensor cores; fetch(c, kk, nn) gives W_c's B fragment (kk, nn) for this lane. The 64 columns are
+// split into PARTS parts of 8 / PARTS n-tiles (this warp's: `part`); with PARTS > 1 the parts pass
+// their output fragments on through `exchange` (TileExchange or ClusterExchange).
 // ACCS = 3 (with PASSES = 3): each pass into an accumulator of its own, added at the end, so that
 // an accumulator's chain of dependent mma.sync is 8 long instead of 24.
-template <int PASSES, int NSPLIT, int ACCS, class Fetch>
-__device__ __forceinline__ void product_chain(float4 (&frag)[8], float4 (*X)[2][8][32], int& buf, int mtile,
-                                              int part, int lane, int chain, const Fetch& fetch) {
-  constexpr int NT = 8 / NSPLIT;  // n-tiles per warp
+template <int PASSES, int PARTS, int ACCS, class Fetch, class Exchange>
+__device__ __forceinline__ void product_chain(float4 (&frag)[8], Exchange& exchange, int part, int chain,
+                                              const Fetch& fetch) {
+  constexpr int NT = 8 / PARTS;  // n-tiles per warp
   static_assert(ACCS == 1 || (ACCS == 3 && PASSES == 3), "one accumulator, or one per pass of three");
   float acc[ACCS][NT][4];
   for (int c = 0; c < chain; ++c) {
@@ -172,19 +214,16 @@ __device__ __forceinline__ void product_chain(float4 (&frag)[8], float4 (*X)[2][
 #pragma unroll
         for (int e = 0; e < 4; ++e) acc[0][j][e] = (acc[0][j][e] + acc[1 % ACCS][j][e]) + acc[2 % ACCS][j][e];
     }
-    if (NSPLIT == 1) {
+    if (PARTS == 1) {
 #pragma unroll
       for (int j = 0; j < NT; ++j)
         frag[j] = make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
     } else {
 #pragma unroll
       for (int j = 0; j < NT; ++j)
-        X[buf][mtile][part * NT + j][lane] =
-            make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3]));
-      asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(32 * NSPLIT) : "memory");
-#pragma unroll
-      for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
-      buf ^= 1;
+        exchange.put(part * NT + j,
+                     make_float4(leaky(acc[0][j][0]), leaky(acc[0][j][2]), leaky(acc[0][j][1]), leaky(acc[0][j][3])));
+      exchange.sync(frag);
     }
   }
 }
@@ -208,6 +247,17 @@ __device__ __forceinline__ void store_fragments(const float4 (&frag)[8], float* 
   }
 }
 
+// W [64, 64] (row-major [k][o]) into the B fragments (hi, and lo for PASSES = 3) per (kk, nn, lane).
+template <int PASSES>
+__device__ __forceinline__ void load_b_fragments(uint2 (*Bhi)[8][32], uint2 (*Blo)[8][32], const float* __restrict__ w) {
+  for (int i = threadIdx.x; i < 8 * 8 * 32; i += blockDim.x) {
+    const int kk = i / 256, nn = (i / 32) % 8, l = i % 32, lg = l / 4, lt = l % 4;
+    const BFragment b = split_b(w[(8 * kk + 2 * lt) * WIDTH + 8 * nn + lg], w[(8 * kk + 2 * lt + 1) * WIDTH + 8 * nn + lg]);
+    Bhi[kk][nn][l] = b.hi;
+    if (PASSES == 3) Blo[kk][nn][l] = b.lo;
+  }
+}
+
 template <int PASSES, int NSPLIT, int ACCS>
 __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict__ h0, const float* __restrict__ w,
                                                          float* __restrict__ out, int steps, int chain) {
@@ -219,23 +269,52 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
   const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
   const int g = lane / 4, t = lane % 4;
   const int mtile = warp / NSPLIT, part = warp % NSPLIT;
-  for (int i = threadIdx.x; i < 8 * 8 * 32; i += blockDim.x) {
-    const int kk = i / 256, nn = (i / 32) % 8, l = i % 32, lg = l / 4, lt = l % 4;
-    const BFragment b = split_b(w[(8 * kk + 2 * lt) * WIDTH + 8 * nn + lg], w[(8 * kk + 2 * lt + 1) * WIDTH + 8 * nn + lg]);
-    Bhi[kk][nn][l] = b.hi;
-    if (PASSES == 3) Blo[kk][nn][l] = b.lo;
-  }
+  load_b_fragments<PASSES>(Bhi, Blo, w);
   float4 frag[8];
   const int r0 = 16 * mtile + g;
   load_fragments(frag, h0, r0, t);
   __syncthreads();
-  int buf = 0;
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
   const auto fetch = [&](int, int kk, int nn) {
     return BFragment{Bhi[kk][nn][lane], PASSES == 3 ? Blo[kk][nn][lane] : make_uint2(0u, 0u)};
   };
-  for (int s = 0; s < steps; ++s)
-    product_chain<PASSES, NSPLIT, ACCS>(frag, NSPLIT > 1 ? X : nullptr, buf, mtile, part, lane, chain, fetch);
+  for (int s = 0; s < steps; ++s) product_chain<PASSES, NSPLIT, ACCS>(frag, exchange, part, chain, fetch);
   if (part == 0) store_fragments(frag, out, r0, t);
+}
+
+// The tf32x3 chain (three accumulators) over a thread-block cluster of CLUSTER blocks of NSPLIT
+// warps per row tile: the 64 columns in CLUSTER·NSPLIT parts, block r's warps computing parts
+// r·NSPLIT .. r·NSPLIT + NSPLIT − 1 with more multiprocessors' tensor cores, and every product's
+// output fragments stored into every block's shared memory before the cluster's barrier
+// (ClusterExchange). Block 0 writes the result.
+template <int CLUSTER, int NSPLIT>
+__global__ void __launch_bounds__(64 * NSPLIT) chain_cluster(const float* __restrict__ h0, const float* __restrict__ w,
+                                                             float* __restrict__ out, int steps, int chain) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900  // clusters need sm_90 (as cluster_adam)
+  __shared__ __align__(16) uint2 Bhi[8][8][32];
+  __shared__ __align__(16) uint2 Blo[8][8][32];
+  __shared__ __align__(16) float4 X[2][2][8][32];
+  cg::cluster_group cluster = cg::this_cluster();
+  const int rank = int(cluster.block_rank());
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  const int g = lane / 4, t = lane % 4;
+  const int mtile = warp / NSPLIT, part = rank * NSPLIT + warp % NSPLIT;
+  load_b_fragments<3>(Bhi, Blo, w);
+  float4 frag[8];
+  const int r0 = 16 * mtile + g;
+  load_fragments(frag, h0, r0, t);
+  ClusterExchange<CLUSTER> exchange;
+  exchange.X = X;
+  exchange.buf = 0;
+  exchange.mtile = mtile;
+  exchange.lane = lane;
+#pragma unroll
+  for (int r = 0; r < CLUSTER; ++r) exchange.ranks[r] = cluster.map_shared_rank(X, r);
+  cluster.sync();  // every block of the cluster has started and loaded its fragments
+  const auto fetch = [&](int, int kk, int nn) { return BFragment{Bhi[kk][nn][lane], Blo[kk][nn][lane]}; };
+  for (int s = 0; s < steps; ++s) product_chain<3, CLUSTER * NSPLIT, 3>(frag, exchange, part, chain, fetch);
+  if (rank == 0 && warp % NSPLIT == 0) store_fragments(frag, out, r0, t);
+#endif
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -415,6 +494,31 @@ __global__ void block_adam(AdamArgs a) {
   }
 }
 
+// Adam over one thread-block cluster of CLUSTER blocks: one seed's update spread over CLUSTER
+// multiprocessors with the cluster's barrier after every step, where grid_adam spreads it over the
+// whole GPU with the grid's. Mode 0: the barrier alone; mode 1: each block's slice (gradient and
+// update, as block_adam) before it. Clusters need sm_90: built empty for older targets, and the
+// host runs them only on such a GPU.
+template <int CLUSTER>
+__global__ void cluster_adam(AdamArgs a, int mode) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  cg::cluster_group cluster = cg::this_cluster();
+  const int quads = a.n / 4;
+  const int per_block = (quads + CLUSTER - 1) / CLUSTER;
+  const int lo = int(cluster.block_rank()) * per_block, hi = min(quads, lo + per_block);
+  for (int s = 0; s < a.steps; ++s) {
+    if (mode == 1) {
+      const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
+      for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) {
+        gradient_quad(a, i);
+        adam_quad(a, i, c1, c2);
+      }
+    }
+    cluster.sync();
+  }
+#endif
+}
+
 // ----------------------------------------------------------------------------------------------
 // Many seeds, one thread block each, `steps` whole steps per launch: per step `products` dependent
 // products of the seed's 32 input rows (h0, read again at every step's start) on the tensor cores
@@ -450,7 +554,7 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   const float* h_seed = h0 + size_t(seed) * ROWS * WIDTH;
   float4 frag[8];
   __syncthreads();
-  int buf = 0;
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
   const auto fetch = [&](int c, int kk, int nn) {
     const float2 b =
         reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
@@ -459,7 +563,7 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   for (int s = 0; s < steps; ++s) {
     if (chain_warp) {
       load_fragments(frag, h_seed, r0, t);  // each step starts from its input rows, as a minibatch does
-      product_chain<3, NSPLIT, 3>(frag, NSPLIT > 1 ? X : nullptr, buf, mtile, part, lane, products, fetch);
+      product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
       if (warp == 0 && lane == 0) link = frag[0].x;
     }
     __syncthreads();
@@ -573,7 +677,41 @@ struct ChainVariant {
   int accumulators;
   int threads;
   ChainKernel fn;
+  int cluster = 1;  // blocks in the launch's one cluster (1: a plain launch of one block)
 };
+
+// The launch of one cluster of `cluster` blocks of `threads` threads (attr: its attribute's storage).
+static cudaLaunchConfig_t one_cluster(int cluster, int threads, cudaLaunchAttribute* attr) {
+  cudaLaunchConfig_t cfg = {};
+  cfg.gridDim = dim3(cluster);
+  cfg.blockDim = dim3(threads);
+  attr->id = cudaLaunchAttributeClusterDimension;
+  attr->val.clusterDim.x = cluster;
+  attr->val.clusterDim.y = 1;
+  attr->val.clusterDim.z = 1;
+  cfg.attrs = attr;
+  cfg.numAttrs = 1;
+  return cfg;
+}
+
+// One launch of a chain kernel: one block, or one cluster of v.cluster blocks.
+static void launch_chain(const ChainVariant& v, const float* h0, const float* w, float* out, int steps, int chain) {
+  if (v.cluster == 1) {
+    v.fn<<<1, v.threads>>>(h0, w, out, steps, chain);
+    return;
+  }
+  cudaLaunchAttribute attr;
+  const cudaLaunchConfig_t cfg = one_cluster(v.cluster, v.threads, &attr);
+  CHECK(cudaLaunchKernelEx(&cfg, v.fn, h0, w, out, steps, chain));
+}
+
+// One launch of cluster_adam<cluster> (2, 4 or 8 blocks).
+static void launch_cluster_adam(int cluster, int threads, AdamArgs a, int mode) {
+  cudaLaunchAttribute attr;
+  const cudaLaunchConfig_t cfg = one_cluster(cluster, threads, &attr);
+  void (*fn)(AdamArgs, int) = cluster == 2 ? cluster_adam<2> : cluster == 4 ? cluster_adam<4> : cluster_adam<8>;
+  CHECK(cudaLaunchKernelEx(&cfg, fn, a, mode));
+}
 
 static float time_launches(const std::function<void()>& launch, int repeats) {
   cudaEvent_t start, stop;
@@ -823,6 +961,11 @@ int main(int argc, char** argv) {
       {"chain_mma", "tf32x3", 2, 1, 128, chain_mma<3, 2, 1>},
       {"chain_mma", "tf32x3", 2, 3, 128, chain_mma<3, 2, 3>},
       {"chain_mma", "tf32x3", 4, 1, 256, chain_mma<3, 4, 1>},
+      {"chain_cluster", "tf32x3", 1, 3, 64, chain_cluster<2, 1>, 2},
+      {"chain_cluster", "tf32x3", 2, 3, 128, chain_cluster<2, 2>, 2},
+      {"chain_cluster", "tf32x3", 1, 3, 64, chain_cluster<4, 1>, 4},
+      {"chain_cluster", "tf32x3", 2, 3, 128, chain_cluster<4, 2>, 4},
+      {"chain_cluster", "tf32x3", 1, 3, 64, chain_cluster<8, 1>, 8},
 #ifdef KERNEL_CUDA_WGMMA
       {"chain_wgmma", "tf32", 0, 1, 128, chain_wgmma<1, 1>},
       {"chain_wgmma", "tf32x3", 0, 1, 128, chain_wgmma<3, 1>},
@@ -832,22 +975,25 @@ int main(int argc, char** argv) {
   const int check_chain = 4;
   const std::vector<std::vector<float>> one_weight{w};
   std::vector<float> got(h0.size());
+  const bool clusters = prop.major >= 9;  // thread-block clusters need sm_90
   for (const ChainVariant& v : variants) {
+    if (v.cluster > 1 && !clusters) continue;
     const Reference ref = reference_chain(h0, one_weight, check_chain, product_gamma(v.precision));
-    v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, 1, check_chain);
+    CHECK(cudaMemset(d_out, 0, h0.size() * sizeof(float)));
+    launch_chain(v, d_h0, d_w, d_out, 1, check_chain);
     CHECK(cudaGetLastError());
     CHECK(cudaMemcpy(got.data(), d_out, got.size() * sizeof(float), cudaMemcpyDeviceToHost));
     double rel, over_bound;
     chain_errors(got, ref, &rel, &over_bound);
-    printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"products\": %d, "
-           "\"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
-           v.kernel, v.precision, v.nsplit, v.accumulators, check_chain, rel, over_bound);
+    printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"cluster\": %d, "
+           "\"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+           v.kernel, v.precision, v.nsplit, v.accumulators, v.cluster, check_chain, rel, over_bound);
     for (int chain : chains) {
-      const float ms = time_launches([&] { v.fn<<<1, v.threads>>>(d_h0, d_w, d_out, steps, chain); }, repeats);
+      const float ms = time_launches([&] { launch_chain(v, d_h0, d_w, d_out, steps, chain); }, repeats);
       CHECK(cudaGetLastError());
       printf("{\"kernel\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"threads\": %d, "
-             "\"chain\": %d, \"steps\": %d, \"us_per_iteration\": %.4f}\n",
-             v.kernel, v.precision, v.nsplit, v.accumulators, v.threads, chain, steps, 1e3 * ms / steps);
+             "\"cluster\": %d, \"chain\": %d, \"steps\": %d, \"us_per_iteration\": %.4f}\n",
+             v.kernel, v.precision, v.nsplit, v.accumulators, v.threads, v.cluster, chain, steps, 1e3 * ms / steps);
     }
   }
 
@@ -928,6 +1074,28 @@ int main(int argc, char** argv) {
     printf("{\"kernel\": \"block_adam\", \"mode\": \"block\", \"blocks\": 1, \"threads\": %d, \"n\": %d, \"steps\": %d, "
            "\"us_per_step\": %.4f}\n",
            bt, adam_n, adam_steps, 1e3 * ms / adam_steps);
+  }
+  for (int cluster : {2, 4, 8}) {
+    if (!clusters) break;
+    for (int bt : {256, 1024}) {
+      reset();
+      a.steps = check_steps;
+      launch_cluster_adam(cluster, bt, a, 1);
+      CHECK(cudaGetLastError());
+      CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
+      printf("{\"check\": \"cluster_adam\", \"cluster\": %d, \"threads\": %d, \"steps\": %d, "
+             "\"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
+             cluster, bt, check_steps, update_error(got_w), max_abs_w, max_update);
+      for (int mode = 0; mode < 2; ++mode) {
+        reset();
+        a.steps = adam_steps;
+        const float ms = time_launches([&] { launch_cluster_adam(cluster, bt, a, mode); }, repeats);
+        CHECK(cudaGetLastError());
+        printf("{\"kernel\": \"cluster_adam\", \"mode\": \"%s\", \"cluster\": %d, \"blocks\": %d, \"threads\": %d, "
+               "\"n\": %d, \"steps\": %d, \"us_per_step\": %.4f}\n",
+               mode == 0 ? "sync" : "update", cluster, cluster, bt, adam_n, adam_steps, 1e3 * ms / adam_steps);
+      }
+    }
   }
   return seed_benchmark(seed_counts, seed_n, seed_loop, seed_products, repeats, rng);
 }

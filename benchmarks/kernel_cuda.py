@@ -18,6 +18,12 @@ hand):
 - ``chain_wgmma`` (sm_90a only): the same chain with Hopper's warpgroup products (``wgmma``,
   m64n64k8, A from registers in the same fragments, B in shared memory), one warpgroup, the
   chain's 32 rows (the minibatch's 20, padded) padded again to 64.
+- ``chain_cluster`` (sm_90 and later): the tf32x3 chain over a thread-block cluster of 2, 4 or 8
+  blocks, the columns split over more multiprocessors' tensor cores, each product's output passed
+  to every block's shared memory (distributed shared memory) before the cluster's barrier; and
+  ``cluster_adam``, Adam over a cluster of the same size with the cluster's barrier after every
+  step, and that barrier alone. Their sum per cluster size (``cluster_estimates``) is the floor of
+  a step run by one cluster.
 - ``grid_adam``: Adam on ``--adam-n`` entries (GMR's packed θ: 41 600) per step, spread over a
   cooperative grid of one block per multiprocessor between two grid-wide syncs (block 0 reads the
   weights and writes a gradient first, as the block that forms the products would); the syncs
@@ -43,7 +49,8 @@ approach, not kernels::
     python -m benchmarks.kernel_cuda --out kernel_cuda.json
 
 Needs nvcc and an NVIDIA GPU (``--arch native`` builds for the GPU present); results:
-benchmarks/RESULTS.md, twenty-second session (one seed) and thirty-ninth (many seeds).
+benchmarks/RESULTS.md, twenty-second session (one seed), thirty-ninth (many seeds) and fortieth
+(clusters).
 """
 
 from __future__ import annotations
@@ -204,17 +211,20 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
             failed.append(checks[-1])
     chains = [r for r in lines if r.get("kernel", "").startswith("chain")]
     fits = {}
-    variant = lambda r: (r["kernel"], r["precision"], r["nsplit"], r.get("accumulators", 1), r["threads"])  # noqa: E731
+    variant = lambda r: (r["kernel"], r["precision"], r["nsplit"], r.get("accumulators", 1), r["threads"],  # noqa: E731
+                         r.get("cluster", 1))
+    in_cluster = lambda c: f"_cluster{c}" if c > 1 else ""  # noqa: E731
     for key in sorted({variant(r) for r in chains}):
         pts = [(r["chain"], r["us_per_iteration"]) for r in chains if variant(r) == key]
         if len({c for c, _ in pts}) >= 2:
             slope, intercept = line_fit(pts)
-            fits[f"{key[0]}_{key[1]}_split{key[2]}_acc{key[3]}_{key[4]}threads"] = {
-                "us_per_product": slope, "us_per_iteration_besides": intercept}
-    adam = {f"{r['kernel']}_{r['mode']}_{r['threads']}threads": r["us_per_step"]
+            fits[f"{key[0]}_{key[1]}_split{key[2]}_acc{key[3]}_{key[4]}threads{in_cluster(key[5])}"] = {
+                "us_per_product": slope, "us_per_iteration_besides": intercept, "cluster": key[5]}
+    adam = {f"{r['kernel']}_{r['mode']}_{r['threads']}threads{in_cluster(r.get('cluster', 1))}": r["us_per_step"]
             for r in lines if r.get("kernel", "").endswith("adam")}
     estimate = None
-    accurate = {k: v for k, v in fits.items() if "_tf32x3_" in k or "_ieee_" in k}
+    # the one-block chains with the grid's Adam; the clusters' chains with their own Adam (below)
+    accurate = {k: v for k, v in fits.items() if ("_tf32x3_" in k or "_ieee_" in k) and v["cluster"] == 1}
     updates = {k: v for k, v in adam.items() if k.startswith("grid_adam_update")}
     if accurate and updates:
         best = min(accurate, key=lambda k: accurate[k]["us_per_product"])
@@ -225,7 +235,29 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
                     "us_per_step": products * accurate[best]["us_per_product"] + updates[update]}
     seeds = seeds_estimate([r for r in lines if r.get("kernel") == "seed_steps"], products, run_steps)
     return {"device": device, "checks": checks, "failed_checks": failed, "chain_fits": fits,
-            "adam_us_per_step": adam, "floor_estimate": estimate, "seed_steps": seeds}
+            "adam_us_per_step": adam, "floor_estimate": estimate,
+            "cluster_estimates": cluster_estimates(fits, adam, products), "seed_steps": seeds}
+
+
+def cluster_estimates(fits: dict, adam: dict, products: int) -> dict:
+    """Per cluster size: ``products`` times the fastest float32-accurate product of a chain over that
+    many blocks (``chain_fits``) plus the fastest Adam step over a cluster of the same size
+    (``cluster_adam``), and the cluster's barrier alone: the one-seed floor of a kernel whose step
+    runs on one thread-block cluster, before the head, the loss, the gather and the statistics."""
+    out = {}
+    for size in sorted({v["cluster"] for v in fits.values() if v["cluster"] > 1}):
+        chains = {k: v for k, v in fits.items() if v["cluster"] == size and "_tf32x3_" in k}
+        updates = {k: v for k, v in adam.items() if k.startswith("cluster_adam_update") and k.endswith(f"_cluster{size}")}
+        syncs = [v for k, v in adam.items() if k.startswith("cluster_adam_sync") and k.endswith(f"_cluster{size}")]
+        if not chains or not updates:
+            continue
+        best = min(chains, key=lambda k: chains[k]["us_per_product"])
+        update = min(updates, key=updates.get)
+        out[str(size)] = {"products": products, "product_kernel": best, "us_per_product": chains[best]["us_per_product"],
+                          "adam_kernel": update, "adam_us": updates[update],
+                          "barrier_alone_us": min(syncs) if syncs else None,
+                          "us_per_step": products * chains[best]["us_per_product"] + updates[update]}
+    return out
 
 
 def seeds_estimate(rows: list[dict], products: int, run_steps: int) -> dict | None:
@@ -336,10 +368,12 @@ def main(argv=None) -> int:
             threads = f" {c['threads']} threads" if "seeds" in c else ""
             width = (f" (bound at most {c['max_bound_over_max_h']:.1e} of max|h|)"
                      if "max_bound_over_max_h" in c else "")
-            what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}{threads}: max error "
+            blocks = f" cluster {c['cluster']}" if c.get("cluster", 1) > 1 else ""
+            what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}{blocks}{threads}: max error "
                     f"{c['max_rel_err']:.2e} of max|h|, {c['max_err_over_bound']:.2e} of its bound{width}")
         else:
             seeds = f", worst of {c['seeds']} seeds" if "seeds" in c else ""
+            seeds += f", cluster of {c['cluster']}" if "cluster" in c else ""
             what = (f"{c['threads']:4d} threads: max error {c['max_err_over_update']:.2e} of the update "
                     f"(bound {c['bound']:.1e}{seeds})")
         print(f"check {c['check']:10s} {what} {'ok' if c['ok'] else 'FAILED'}", flush=True)
@@ -353,6 +387,12 @@ def main(argv=None) -> int:
         print(f"floor of a one-kernel CUDA S-step: {e['products']} × {e['us_per_product']:.3f} µs "
               f"({e['product_kernel']}) + {e['adam_us']:.2f} µs Adam = {e['us_per_step']:.1f} µs per step, "
               "before the head, the loss, the gather and the statistics", flush=True)
+    for size, e in summary["cluster_estimates"].items():
+        print(f"floor over a cluster of {size} blocks: {e['products']} × {e['us_per_product']:.3f} µs "
+              f"({e['product_kernel']}) + {e['adam_us']:.2f} µs Adam ({e['adam_kernel']}) = {e['us_per_step']:.1f} µs "
+              "per step, before the head, the loss, the gather and the statistics"
+              + (f" (the cluster's barrier alone {e['barrier_alone_us']:.2f} µs)" if e["barrier_alone_us"] else ""),
+              flush=True)
     if summary["seed_steps"]:
         e = summary["seed_steps"]
         for name, us in e["us_per_step"].items():

@@ -7,7 +7,7 @@ check). Here: a model
 of ``mma.m16n8k8``'s fragments (PTX's layout, one 16-row tile, 32 lanes) shows that storing W's
 rows in an accumulator fragment's order lets a product's output fragments serve as the next
 product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimates
-(one seed and many); the NumPy emulation of Adam's float32 check; and, where nvcc is installed,
+(one seed, one thread-block cluster, many seeds); the NumPy emulation of Adam's float32 check; and, where nvcc is installed,
 that the kernels build for sm_90 and sm_90a without spilling registers.
 """
 
@@ -107,6 +107,33 @@ def test_summary_fits_checks_and_estimate():
     # an entry beyond the chain's forward-error bound fails the check
     bad = kernel_cuda.summarize(_lines(over_bound=1.5), products=32)
     assert [c["precision"] for c in bad["failed_checks"]] == ["tf32x3"]
+
+
+def test_cluster_chains_get_their_own_estimate_with_the_clusters_adam():
+    lines = _lines()
+    # a cluster's chain faster per product than every one-block chain, and its Adam
+    for size, per_product, adam_us in ((2, 0.5, 9.0), (4, 0.4, 6.0)):
+        lines.append({"check": "chain_cluster", "precision": "tf32x3", "nsplit": 1, "accumulators": 3,
+                      "cluster": size, "products": 4, "max_rel_err": 1e-6, "max_err_over_bound": 1e-2})
+        lines += [{"kernel": "chain_cluster", "precision": "tf32x3", "nsplit": 1, "accumulators": 3, "threads": 64,
+                   "cluster": size, "chain": c, "steps": 10, "us_per_iteration": 0.1 + per_product * c}
+                  for c in (1, 8, 32)]
+        lines.append({"check": "cluster_adam", "cluster": size, "threads": 1024, "steps": 5,
+                      "max_err_over_update": 1e-5, "max_abs_w": 0.4, "max_update": 5e-3})
+        lines += [{"kernel": "cluster_adam", "mode": mode, "cluster": size, "threads": 1024, "us_per_step": us}
+                  for mode, us in (("update", adam_us), ("sync", 0.3 * size))]
+    s = kernel_cuda.summarize(lines, products=32)
+    assert not s["failed_checks"]
+    # the one-block estimate keeps the one-block chains and the grid's Adam
+    assert s["floor_estimate"]["product_kernel"] == "chain_mma_tf32x3_split2_acc1_128threads"
+    assert s["adam_us_per_step"]["cluster_adam_update_1024threads_cluster4"] == pytest.approx(6.0)
+    est = s["cluster_estimates"]
+    assert sorted(est) == ["2", "4"]
+    assert est["4"]["product_kernel"] == "chain_cluster_tf32x3_split1_acc3_64threads_cluster4"
+    assert est["4"]["us_per_product"] == pytest.approx(0.4)
+    assert est["4"]["us_per_step"] == pytest.approx(32 * 0.4 + 6.0)
+    assert est["2"]["us_per_step"] == pytest.approx(32 * 0.5 + 9.0)
+    assert est["2"]["barrier_alone_us"] == pytest.approx(0.6)
 
 
 def _seed_lines(errs):
@@ -236,7 +263,7 @@ def test_emulation_runs_without_a_gpu(tmp_path, capsys):
 def test_kernels_build_for_hopper_without_spills(tmp_path, arch, wgmma):
     exe, report = kernel_cuda.build("nvcc", arch, str(tmp_path))
     assert exe.exists()
-    for kernel in ("chain_fma", "chain_mma", "grid_adam", "block_adam", "seed_steps"):
+    for kernel in ("chain_fma", "chain_mma", "chain_cluster", "grid_adam", "block_adam", "cluster_adam", "seed_steps"):
         assert kernel in report
     # the warpgroup products need the architecture-specific target
     assert ("chain_wgmma" in report) == wgmma
