@@ -18,7 +18,8 @@
 //   chain_cluster the tf32x3 chain over a thread-block cluster of 2, 4 or 8 blocks (sm_90): the
 //               columns split over every block's warps, each product's output fragments stored into
 //               every block's shared memory, then the cluster's barrier; cluster_adam, Adam over a
-//               cluster with the cluster's barrier after every step.
+//               cluster (grid_adam's work, or each block its own slice's gradient), the cluster's
+//               barrier between. Each block of a cluster has a multiprocessor of its own.
 //   grid_adam   Adam on n parameters per step, split over a cooperative grid of one block per
 //               multiprocessor: block 0 reads the weights and writes a gradient (as the block
 //               that forms the step's products would), grid sync, every block updates its slice
@@ -282,6 +283,18 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
   if (part == 0) store_fragments(frag, out, r0, t);
 }
 
+// The multiprocessor each block of the last cluster launch ran on (block rank r: cluster_sm[r]),
+// so that the host can check that a cluster's blocks had multiprocessors of their own.
+__device__ int cluster_sm[8];
+
+__device__ __forceinline__ void record_sm(int rank) {
+  if (threadIdx.x == 0) {
+    int sm;
+    asm volatile("mov.u32 %0, %%smid;" : "=r"(sm));
+    cluster_sm[rank] = sm;
+  }
+}
+
 // The tf32x3 chain (three accumulators) over a thread-block cluster of CLUSTER blocks of NSPLIT
 // warps per row tile: the 64 columns in CLUSTER·NSPLIT parts, block r's warps computing parts
 // r·NSPLIT .. r·NSPLIT + NSPLIT − 1 with more multiprocessors' tensor cores, and every product's
@@ -296,6 +309,7 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_cluster(const float* __rest
   __shared__ __align__(16) float4 X[2][2][8][32];
   cg::cluster_group cluster = cg::this_cluster();
   const int rank = int(cluster.block_rank());
+  record_sm(rank);
   const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
   const int g = lane / 4, t = lane % 4;
   const int mtile = warp / NSPLIT, part = rank * NSPLIT + warp % NSPLIT;
@@ -495,20 +509,30 @@ __global__ void block_adam(AdamArgs a) {
 }
 
 // Adam over one thread-block cluster of CLUSTER blocks: one seed's update spread over CLUSTER
-// multiprocessors with the cluster's barrier after every step, where grid_adam spreads it over the
-// whole GPU with the grid's. Mode 0: the barrier alone; mode 1: each block's slice (gradient and
-// update, as block_adam) before it. Clusters need sm_90: built empty for older targets, and the
-// host runs them only on such a GPU.
+// multiprocessors with the cluster's barrier, where grid_adam spreads it over the whole GPU with the
+// grid's. Mode 0: the barrier alone, once per step. Mode 1: grid_adam's work: block 0 writes the
+// gradient of every entry (as the block that forms the products would), barrier, every block
+// updates its slice, barrier. Mode 2: every block writes the gradient of its own slice and updates
+// it, one barrier (as when the cluster's blocks form the products, each its columns' weight
+// gradient). Clusters need sm_90: built empty for older targets, and the host runs them only on such
+// a GPU.
 template <int CLUSTER>
 __global__ void cluster_adam(AdamArgs a, int mode) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
   cg::cluster_group cluster = cg::this_cluster();
+  const int rank = int(cluster.block_rank());
+  record_sm(rank);
   const int quads = a.n / 4;
   const int per_block = (quads + CLUSTER - 1) / CLUSTER;
-  const int lo = int(cluster.block_rank()) * per_block, hi = min(quads, lo + per_block);
+  const int lo = rank * per_block, hi = min(quads, lo + per_block);
   for (int s = 0; s < a.steps; ++s) {
+    const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
     if (mode == 1) {
-      const float c1 = correction(a.b1, s), c2 = correction(a.b2, s);
+      if (rank == 0)
+        for (int i = threadIdx.x; i < quads; i += blockDim.x) gradient_quad(a, i);
+      cluster.sync();
+      for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) adam_quad(a, i, c1, c2);
+    } else if (mode == 2) {
       for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) {
         gradient_quad(a, i);
         adam_quad(a, i, c1, c2);
@@ -680,11 +704,17 @@ struct ChainVariant {
   int cluster = 1;  // blocks in the launch's one cluster (1: a plain launch of one block)
 };
 
+// Dynamic shared memory that every cluster launch asks for and leaves unused: with it no two blocks
+// fit one multiprocessor (its 228 KiB), so a cluster's blocks run on multiprocessors of their own
+// (cluster_sm, checked by the host).
+constexpr int CLUSTER_PAD_BYTES = 120 * 1024;
+
 // The launch of one cluster of `cluster` blocks of `threads` threads (attr: its attribute's storage).
 static cudaLaunchConfig_t one_cluster(int cluster, int threads, cudaLaunchAttribute* attr) {
   cudaLaunchConfig_t cfg = {};
   cfg.gridDim = dim3(cluster);
   cfg.blockDim = dim3(threads);
+  cfg.dynamicSmemBytes = CLUSTER_PAD_BYTES;
   attr->id = cudaLaunchAttributeClusterDimension;
   attr->val.clusterDim.x = cluster;
   attr->val.clusterDim.y = 1;
@@ -694,12 +724,21 @@ static cudaLaunchConfig_t one_cluster(int cluster, int threads, cudaLaunchAttrib
   return cfg;
 }
 
+// How many distinct multiprocessors the blocks of the last cluster launch of `cluster` blocks ran on.
+static int distinct_sms(int cluster) {
+  int sm[8];
+  CHECK(cudaMemcpyFromSymbol(sm, cluster_sm, sizeof sm));
+  std::sort(sm, sm + cluster);
+  return int(std::unique(sm, sm + cluster) - sm);
+}
+
 // One launch of a chain kernel: one block, or one cluster of v.cluster blocks.
 static void launch_chain(const ChainVariant& v, const float* h0, const float* w, float* out, int steps, int chain) {
   if (v.cluster == 1) {
     v.fn<<<1, v.threads>>>(h0, w, out, steps, chain);
     return;
   }
+  CHECK(cudaFuncSetAttribute(v.fn, cudaFuncAttributeMaxDynamicSharedMemorySize, CLUSTER_PAD_BYTES));
   cudaLaunchAttribute attr;
   const cudaLaunchConfig_t cfg = one_cluster(v.cluster, v.threads, &attr);
   CHECK(cudaLaunchKernelEx(&cfg, v.fn, h0, w, out, steps, chain));
@@ -710,6 +749,7 @@ static void launch_cluster_adam(int cluster, int threads, AdamArgs a, int mode) 
   cudaLaunchAttribute attr;
   const cudaLaunchConfig_t cfg = one_cluster(cluster, threads, &attr);
   void (*fn)(AdamArgs, int) = cluster == 2 ? cluster_adam<2> : cluster == 4 ? cluster_adam<4> : cluster_adam<8>;
+  CHECK(cudaFuncSetAttribute(fn, cudaFuncAttributeMaxDynamicSharedMemorySize, CLUSTER_PAD_BYTES));
   CHECK(cudaLaunchKernelEx(&cfg, fn, a, mode));
 }
 
@@ -986,8 +1026,9 @@ int main(int argc, char** argv) {
     double rel, over_bound;
     chain_errors(got, ref, &rel, &over_bound);
     printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"cluster\": %d, "
-           "\"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
-           v.kernel, v.precision, v.nsplit, v.accumulators, v.cluster, check_chain, rel, over_bound);
+           "\"distinct_sms\": %d, \"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+           v.kernel, v.precision, v.nsplit, v.accumulators, v.cluster, v.cluster > 1 ? distinct_sms(v.cluster) : 1,
+           check_chain, rel, over_bound);
     for (int chain : chains) {
       const float ms = time_launches([&] { launch_chain(v, d_h0, d_w, d_out, steps, chain); }, repeats);
       CHECK(cudaGetLastError());
@@ -1078,22 +1119,27 @@ int main(int argc, char** argv) {
   for (int cluster : {2, 4, 8}) {
     if (!clusters) break;
     for (int bt : {256, 1024}) {
-      reset();
-      a.steps = check_steps;
-      launch_cluster_adam(cluster, bt, a, 1);
-      CHECK(cudaGetLastError());
-      CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
-      printf("{\"check\": \"cluster_adam\", \"cluster\": %d, \"threads\": %d, \"steps\": %d, "
-             "\"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, \"max_update\": %.6e}\n",
-             cluster, bt, check_steps, update_error(got_w), max_abs_w, max_update);
-      for (int mode = 0; mode < 2; ++mode) {
+      for (int mode = 1; mode < 3; ++mode) {
+        reset();
+        a.steps = check_steps;
+        launch_cluster_adam(cluster, bt, a, mode);
+        CHECK(cudaGetLastError());
+        CHECK(cudaMemcpy(got_w.data(), a.w, adam_n * sizeof(float), cudaMemcpyDeviceToHost));
+        printf("{\"check\": \"cluster_adam\", \"mode\": \"%s\", \"cluster\": %d, \"distinct_sms\": %d, "
+               "\"threads\": %d, \"steps\": %d, \"max_err_over_update\": %.3e, \"max_abs_w\": %.6e, "
+               "\"max_update\": %.6e}\n",
+               mode == 1 ? "update" : "local", cluster, distinct_sms(cluster), bt, check_steps, update_error(got_w),
+               max_abs_w, max_update);
+      }
+      for (int mode = 0; mode < 3; ++mode) {
         reset();
         a.steps = adam_steps;
         const float ms = time_launches([&] { launch_cluster_adam(cluster, bt, a, mode); }, repeats);
         CHECK(cudaGetLastError());
         printf("{\"kernel\": \"cluster_adam\", \"mode\": \"%s\", \"cluster\": %d, \"blocks\": %d, \"threads\": %d, "
                "\"n\": %d, \"steps\": %d, \"us_per_step\": %.4f}\n",
-               mode == 0 ? "sync" : "update", cluster, cluster, bt, adam_n, adam_steps, 1e3 * ms / adam_steps);
+               mode == 0 ? "sync" : mode == 1 ? "update" : "local", cluster, cluster, bt, adam_n, adam_steps,
+               1e3 * ms / adam_steps);
       }
     }
   }

@@ -19,11 +19,13 @@ hand):
   m64n64k8, A from registers in the same fragments, B in shared memory), one warpgroup, the
   chain's 32 rows (the minibatch's 20, padded) padded again to 64.
 - ``chain_cluster`` (sm_90 and later): the tf32x3 chain over a thread-block cluster of 2, 4 or 8
-  blocks, the columns split over more multiprocessors' tensor cores, each product's output passed
-  to every block's shared memory (distributed shared memory) before the cluster's barrier; and
-  ``cluster_adam``, Adam over a cluster of the same size with the cluster's barrier after every
-  step, and that barrier alone. Their sum per cluster size (``cluster_estimates``) is the floor of
-  a step run by one cluster.
+  blocks (``split``: warps per row tile in each block), the columns split over the blocks, each
+  block on a multiprocessor of its own (checked), each product's output passed to every block's
+  shared memory (distributed shared memory) before the cluster's barrier; and ``cluster_adam``,
+  Adam over a cluster of the same size: grid_adam's work (one block's gradient, barrier, update,
+  barrier: "update"), or each block its own slice's gradient and update ("local"), and the barrier
+  alone ("sync"). ``cluster_estimates``: per cluster size, its products and its "local" Adam; and
+  the fastest product and the fastest Adam from one block's gradient of every design together.
 - ``grid_adam``: Adam on ``--adam-n`` entries (GMR's packed θ: 41 600) per step, spread over a
   cooperative grid of one block per multiprocessor between two grid-wide syncs (block 0 reads the
   weights and writes a gradient first, as the block that forms the products would); the syncs
@@ -206,8 +208,10 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
                          max_update=float(updates[worst]))
         else:
             continue
-        checks.append({**r, "bound": bound, "ok": bool(err <= bound)})
-        if not err <= bound:
+        # a cluster whose blocks shared a multiprocessor is another design than the one named
+        shared = r.get("distinct_sms", r.get("cluster", 1)) < r.get("cluster", 1)
+        checks.append({**r, "bound": bound, "blocks_shared_a_multiprocessor": shared, "ok": bool(err <= bound) and not shared})
+        if not checks[-1]["ok"]:
             failed.append(checks[-1])
     chains = [r for r in lines if r.get("kernel", "").startswith("chain")]
     fits = {}
@@ -241,13 +245,17 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
 
 def cluster_estimates(fits: dict, adam: dict, products: int) -> dict:
     """Per cluster size: ``products`` times the fastest float32-accurate product of a chain over that
-    many blocks (``chain_fits``) plus the fastest Adam step over a cluster of the same size
-    (``cluster_adam``), and the cluster's barrier alone: the one-seed floor of a kernel whose step
-    runs on one thread-block cluster, before the head, the loss, the gather and the statistics."""
+    many blocks (``chain_fits``) plus the fastest Adam step over a cluster of that size in which each
+    block forms its own slice's gradient (``cluster_adam`` mode "local", as when the cluster's blocks
+    form the products, each its columns' weight gradient), and the cluster's barrier alone: the
+    one-seed estimate of a step run by one cluster, before the head, the loss, the gather and the
+    statistics. Under "any": the fastest accurate product of every chain measured and the fastest
+    Adam step that starts from one block's gradient (``grid_adam`` or ``cluster_adam`` mode
+    "update"), the least that a kernel combining the two designs could take."""
     out = {}
     for size in sorted({v["cluster"] for v in fits.values() if v["cluster"] > 1}):
         chains = {k: v for k, v in fits.items() if v["cluster"] == size and "_tf32x3_" in k}
-        updates = {k: v for k, v in adam.items() if k.startswith("cluster_adam_update") and k.endswith(f"_cluster{size}")}
+        updates = {k: v for k, v in adam.items() if k.startswith("cluster_adam_local") and k.endswith(f"_cluster{size}")}
         syncs = [v for k, v in adam.items() if k.startswith("cluster_adam_sync") and k.endswith(f"_cluster{size}")]
         if not chains or not updates:
             continue
@@ -257,6 +265,14 @@ def cluster_estimates(fits: dict, adam: dict, products: int) -> dict:
                           "adam_kernel": update, "adam_us": updates[update],
                           "barrier_alone_us": min(syncs) if syncs else None,
                           "us_per_step": products * chains[best]["us_per_product"] + updates[update]}
+    accurate = {k: v for k, v in fits.items() if "_tf32x3_" in k or "_ieee_" in k}
+    handoff = {k: v for k, v in adam.items() if k.startswith(("grid_adam_update", "cluster_adam_update"))}
+    if out and accurate and handoff:
+        best = min(accurate, key=lambda k: accurate[k]["us_per_product"])
+        update = min(handoff, key=handoff.get)
+        out["any"] = {"products": products, "product_kernel": best, "us_per_product": accurate[best]["us_per_product"],
+                      "adam_kernel": update, "adam_us": handoff[update], "barrier_alone_us": None,
+                      "us_per_step": products * accurate[best]["us_per_product"] + handoff[update]}
     return out
 
 
@@ -376,7 +392,8 @@ def main(argv=None) -> int:
             seeds += f", cluster of {c['cluster']}" if "cluster" in c else ""
             what = (f"{c['threads']:4d} threads: max error {c['max_err_over_update']:.2e} of the update "
                     f"(bound {c['bound']:.1e}{seeds})")
-        print(f"check {c['check']:10s} {what} {'ok' if c['ok'] else 'FAILED'}", flush=True)
+        shared = " (its blocks shared a multiprocessor)" if c["blocks_shared_a_multiprocessor"] else ""
+        print(f"check {c['check']:10s} {what}{shared} {'ok' if c['ok'] else 'FAILED'}", flush=True)
     for name, f in summary["chain_fits"].items():
         print(f"{name:36s}: {f['us_per_product']:.3f} µs per dependent product, "
               f"{f['us_per_iteration_besides']:.2f} µs per loop iteration besides", flush=True)
@@ -388,11 +405,12 @@ def main(argv=None) -> int:
               f"({e['product_kernel']}) + {e['adam_us']:.2f} µs Adam = {e['us_per_step']:.1f} µs per step, "
               "before the head, the loss, the gather and the statistics", flush=True)
     for size, e in summary["cluster_estimates"].items():
-        print(f"floor over a cluster of {size} blocks: {e['products']} × {e['us_per_product']:.3f} µs "
+        what = "the fastest product and hand-off Adam of any design" if size == "any" else f"a cluster of {size} blocks"
+        print(f"floor over {what}: {e['products']} × {e['us_per_product']:.3f} µs "
               f"({e['product_kernel']}) + {e['adam_us']:.2f} µs Adam ({e['adam_kernel']}) = {e['us_per_step']:.1f} µs "
               "per step, before the head, the loss, the gather and the statistics"
-              + (f" (the cluster's barrier alone {e['barrier_alone_us']:.2f} µs)" if e["barrier_alone_us"] else ""),
-              flush=True)
+              + (f" (the cluster's barrier alone {e['barrier_alone_us']:.2f} µs)"
+                 if e["barrier_alone_us"] is not None else ""), flush=True)
     if summary["seed_steps"]:
         e = summary["seed_steps"]
         for name, us in e["us_per_step"].items():
@@ -410,8 +428,9 @@ def main(argv=None) -> int:
         with open(args.out, "w") as f:
             json.dump({"env": env, "args": vars(args), "lines": lines, **summary}, f, indent=1)
     if summary["failed_checks"]:
-        raise SystemExit(f"kernel_cuda: {len(summary['failed_checks'])} kernel(s) disagree with the host "
-                         "computation beyond their bound (see the lines marked FAILED); timings not to be used")
+        raise SystemExit(f"kernel_cuda: {len(summary['failed_checks'])} kernel(s) failed their check: they disagree "
+                         "with the host computation beyond their bound, or a cluster's blocks shared a "
+                         "multiprocessor (see the lines marked FAILED); timings not to be used")
     return 0
 
 

@@ -114,26 +114,36 @@ def test_cluster_chains_get_their_own_estimate_with_the_clusters_adam():
     # a cluster's chain faster per product than every one-block chain, and its Adam
     for size, per_product, adam_us in ((2, 0.5, 9.0), (4, 0.4, 6.0)):
         lines.append({"check": "chain_cluster", "precision": "tf32x3", "nsplit": 1, "accumulators": 3,
-                      "cluster": size, "products": 4, "max_rel_err": 1e-6, "max_err_over_bound": 1e-2})
+                      "cluster": size, "distinct_sms": size, "products": 4, "max_rel_err": 1e-6,
+                      "max_err_over_bound": 1e-2})
         lines += [{"kernel": "chain_cluster", "precision": "tf32x3", "nsplit": 1, "accumulators": 3, "threads": 64,
                    "cluster": size, "chain": c, "steps": 10, "us_per_iteration": 0.1 + per_product * c}
                   for c in (1, 8, 32)]
-        lines.append({"check": "cluster_adam", "cluster": size, "threads": 1024, "steps": 5,
-                      "max_err_over_update": 1e-5, "max_abs_w": 0.4, "max_update": 5e-3})
+        lines.append({"check": "cluster_adam", "mode": "local", "cluster": size, "distinct_sms": size,
+                      "threads": 1024, "steps": 5, "max_err_over_update": 1e-5, "max_abs_w": 0.4, "max_update": 5e-3})
         lines += [{"kernel": "cluster_adam", "mode": mode, "cluster": size, "threads": 1024, "us_per_step": us}
-                  for mode, us in (("update", adam_us), ("sync", 0.3 * size))]
+                  for mode, us in (("local", adam_us), ("update", adam_us + 1.0), ("sync", 0.3 * size))]
     s = kernel_cuda.summarize(lines, products=32)
     assert not s["failed_checks"]
     # the one-block estimate keeps the one-block chains and the grid's Adam
     assert s["floor_estimate"]["product_kernel"] == "chain_mma_tf32x3_split2_acc1_128threads"
-    assert s["adam_us_per_step"]["cluster_adam_update_1024threads_cluster4"] == pytest.approx(6.0)
+    assert s["adam_us_per_step"]["cluster_adam_local_1024threads_cluster4"] == pytest.approx(6.0)
     est = s["cluster_estimates"]
-    assert sorted(est) == ["2", "4"]
+    assert sorted(est) == ["2", "4", "any"]
     assert est["4"]["product_kernel"] == "chain_cluster_tf32x3_split1_acc3_64threads_cluster4"
     assert est["4"]["us_per_product"] == pytest.approx(0.4)
     assert est["4"]["us_per_step"] == pytest.approx(32 * 0.4 + 6.0)
     assert est["2"]["us_per_step"] == pytest.approx(32 * 0.5 + 9.0)
     assert est["2"]["barrier_alone_us"] == pytest.approx(0.6)
+    # any design: the fastest product (cluster of 4) with the fastest Adam from one block's gradient
+    # (the cluster of 4's "update", 7.0, against the grid's 7.0 and the cluster of 2's 10.0)
+    assert est["any"]["us_per_product"] == pytest.approx(0.4)
+    assert est["any"]["us_per_step"] == pytest.approx(32 * 0.4 + 7.0)
+    # a cluster whose blocks shared a multiprocessor fails its check: another design than the one named
+    shared = [dict(r, distinct_sms=1) if r.get("check") == "chain_cluster" and r["cluster"] == 4 else r
+              for r in lines]
+    failed = kernel_cuda.summarize(shared, products=32)["failed_checks"]
+    assert [(c["check"], c["cluster"]) for c in failed] == [("chain_cluster", 4)]
 
 
 def _seed_lines(errs):
