@@ -62,11 +62,12 @@ def profile(fn, *args, trace_dir: str | None = None) -> dict:
     return row
 
 
-def stage_programs(cfg: config.Config):
+def stage_programs(cfg: config.Config, seeds: tuple[int, ...] = ()):
     """[(name, fn, abstract args)]: one control step of the plant (and, with MJX, the forward
     kinematics of one of its physics substeps), then the stages of one iteration in their order,
     the iteration (also as the runner's program for one seed, and vmapped over one seed) and
-    ``train``, and for a policy the evaluation after training
+    ``train`` (and, for each count in ``seeds``, ``train`` over that many seeds as
+    ``sharding.train`` maps it on one device: "train, N seeds"), and for a policy the evaluation after training
     (``evaluate.evaluation``, one batch of rollouts) beside the same rollouts as two batches
     (``evaluate.robustness`` and ``evaluate.disturbance_sweep``)."""
     key = jax.random.PRNGKey(0)
@@ -118,6 +119,9 @@ def stage_programs(cfg: config.Config):
     progs.append(("runner's iteration program before: vmapped over one seed",
                   jax.vmap(step, in_axes=(0, 0, None)), (one(state), one(k), first)))
     progs.append(("train", lambda kk: mdgps.train(cfg, kk), (k,)))
+    for n in seeds:
+        progs.append((f"train, {n} seeds", sharding.over_seed_axis(lambda kk: mdgps.train(cfg, kk), (True,)),
+                      (jax.ShapeDtypeStruct((n,) + key.shape, key.dtype),)))
     if state.policy is not None:  # the program that evaluates a trained policy after training
         params = state.policy.params
         progs.append(("evaluation (one batch of rollouts)", lambda pp: evaluate.evaluation(cfg, pp), (params,)))
@@ -139,8 +143,16 @@ def main(argv=None) -> int:
     p.add_argument("--profile", metavar="DIR", help="compile under JAX's profiler (traces under DIR) and "
                    "list XLA's compiler phases and passes by time (inclusive, summed over threads; with "
                    "the profiler on, compilation is somewhat slower)")
+    p.add_argument("--seeds", default="", help="comma-separated seed counts: also compile `train` mapped over "
+                   "that many seeds on one device (\"train, N seeds\"; --only train selects them too)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
+    try:
+        seeds = tuple(int(n) for n in args.seeds.split(",") if n.strip())
+    except ValueError:
+        p.error(f"--seeds {args.seeds!r}: expected comma-separated integers such as 256")
+    if any(n < 1 for n in seeds):
+        p.error(f"--seeds {args.seeds!r}: give positive seed counts, e.g. 256")
     args.precision = cli.setup_jax(args.precision)
     overrides = cli.parse_overrides(p, args.set)
     cfg = config.reach(args.scenario, args.algorithm, sim__backend=args.backend, **overrides)
@@ -151,7 +163,7 @@ def main(argv=None) -> int:
     print(f"Device: {env['device']}, {args.precision}, jax {env['jax']}, {args.scenario}/{args.algorithm}", flush=True)
     only = {s.strip() for s in args.only.split(",") if s.strip()}
     rows = {}
-    for name, fn, fargs in stage_programs(cfg):
+    for name, fn, fargs in stage_programs(cfg, seeds):
         if only and not any(name.startswith(o) for o in only):
             continue
         tdir = os.path.join(args.profile, re.sub(r"\W+", "_", name)) if args.profile else None
