@@ -143,16 +143,10 @@ def main(argv=None) -> int:
     p.add_argument("--profile", metavar="DIR", help="compile under JAX's profiler (traces under DIR) and "
                    "list XLA's compiler phases and passes by time (inclusive, summed over threads; with "
                    "the profiler on, compilation is somewhat slower)")
-    p.add_argument("--seeds", default="", help="comma-separated seed counts: also compile `train` mapped over "
+    p.add_argument("--seeds", type=cli.positive_int_list, default=(), help="comma-separated seed counts: also compile `train` mapped over "
                    "that many seeds on one device (\"train, N seeds\"; --only train selects them too)")
     p.add_argument("--out", help="write the results as JSON to this file")
     args = p.parse_args(argv)
-    try:
-        seeds = tuple(int(n) for n in args.seeds.split(",") if n.strip())
-    except ValueError:
-        p.error(f"--seeds {args.seeds!r}: expected comma-separated integers such as 256")
-    if any(n < 1 for n in seeds):
-        p.error(f"--seeds {args.seeds!r}: give positive seed counts, e.g. 256")
     args.precision = cli.setup_jax(args.precision)
     overrides = cli.parse_overrides(p, args.set)
     cfg = config.reach(args.scenario, args.algorithm, sim__backend=args.backend, **overrides)
@@ -163,7 +157,7 @@ def main(argv=None) -> int:
     print(f"Device: {env['device']}, {args.precision}, jax {env['jax']}, {args.scenario}/{args.algorithm}", flush=True)
     only = {s.strip() for s in args.only.split(",") if s.strip()}
     rows = {}
-    for name, fn, fargs in stage_programs(cfg, seeds):
+    for name, fn, fargs in stage_programs(cfg, args.seeds):
         if only and not any(name.startswith(o) for o in only):
             continue
         tdir = os.path.join(args.profile, re.sub(r"\W+", "_", name)) if args.profile else None

@@ -706,7 +706,8 @@ struct ChainVariant {
 
 // Dynamic shared memory that every cluster launch asks for and leaves unused: with it no two blocks
 // fit one multiprocessor (its 228 KiB), so a cluster's blocks run on multiprocessors of their own
-// (cluster_sm, checked by the host).
+// (cluster_sm, checked by the host). Each cluster kernel is allowed it once, before its first launch
+// (allow_cluster_pad), not in the timed launches.
 constexpr int CLUSTER_PAD_BYTES = 120 * 1024;
 
 // The launch of one cluster of `cluster` blocks of `threads` threads (attr: its attribute's storage).
@@ -724,6 +725,10 @@ static cudaLaunchConfig_t one_cluster(int cluster, int threads, cudaLaunchAttrib
   return cfg;
 }
 
+static void allow_cluster_pad(const void* fn) {
+  CHECK(cudaFuncSetAttribute(fn, cudaFuncAttributeMaxDynamicSharedMemorySize, CLUSTER_PAD_BYTES));
+}
+
 // How many distinct multiprocessors the blocks of the last cluster launch of `cluster` blocks ran on.
 static int distinct_sms(int cluster) {
   int sm[8];
@@ -738,7 +743,6 @@ static void launch_chain(const ChainVariant& v, const float* h0, const float* w,
     v.fn<<<1, v.threads>>>(h0, w, out, steps, chain);
     return;
   }
-  CHECK(cudaFuncSetAttribute(v.fn, cudaFuncAttributeMaxDynamicSharedMemorySize, CLUSTER_PAD_BYTES));
   cudaLaunchAttribute attr;
   const cudaLaunchConfig_t cfg = one_cluster(v.cluster, v.threads, &attr);
   CHECK(cudaLaunchKernelEx(&cfg, v.fn, h0, w, out, steps, chain));
@@ -749,7 +753,6 @@ static void launch_cluster_adam(int cluster, int threads, AdamArgs a, int mode) 
   cudaLaunchAttribute attr;
   const cudaLaunchConfig_t cfg = one_cluster(cluster, threads, &attr);
   void (*fn)(AdamArgs, int) = cluster == 2 ? cluster_adam<2> : cluster == 4 ? cluster_adam<4> : cluster_adam<8>;
-  CHECK(cudaFuncSetAttribute(fn, cudaFuncAttributeMaxDynamicSharedMemorySize, CLUSTER_PAD_BYTES));
   CHECK(cudaLaunchKernelEx(&cfg, fn, a, mode));
 }
 
@@ -1018,6 +1021,7 @@ int main(int argc, char** argv) {
   const bool clusters = prop.major >= 9;  // thread-block clusters need sm_90
   for (const ChainVariant& v : variants) {
     if (v.cluster > 1 && !clusters) continue;
+    if (v.cluster > 1) allow_cluster_pad((const void*)v.fn);
     const Reference ref = reference_chain(h0, one_weight, check_chain, product_gamma(v.precision));
     CHECK(cudaMemset(d_out, 0, h0.size() * sizeof(float)));
     launch_chain(v, d_h0, d_w, d_out, 1, check_chain);
@@ -1116,6 +1120,9 @@ int main(int argc, char** argv) {
            "\"us_per_step\": %.4f}\n",
            bt, adam_n, adam_steps, 1e3 * ms / adam_steps);
   }
+  if (clusters)
+    for (const void* fn : {(const void*)cluster_adam<2>, (const void*)cluster_adam<4>, (const void*)cluster_adam<8>})
+      allow_cluster_pad(fn);
   for (int cluster : {2, 4, 8}) {
     if (!clusters) break;
     for (int bt : {256, 1024}) {

@@ -50,6 +50,16 @@ def _int_at_least(low: int, what: str):
 
 positive_int = _int_at_least(1, "a positive integer")
 """argparse's ``type`` for a positive integer (the command line's and the benchmarks')."""
+
+
+def positive_int_list(text: str) -> tuple[int, ...]:
+    """argparse's ``type`` for comma-separated positive integers ("1,132,256"; empty: none)."""
+    parts = [v.strip() for v in text.split(",") if v.strip()]
+    try:
+        return tuple(positive_int(v) for v in parts)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"must be comma-separated positive integers such as 1,256, "
+                                         f"got {text!r}") from None
 _nonnegative_int = _int_at_least(0, "an integer ≥ 0")
 
 

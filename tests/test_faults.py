@@ -352,3 +352,14 @@ def test_signals_request_a_stop():
         finally:
             for s, handler in before.items():
                 signal.signal(s, handler)
+
+
+def test_comma_separated_positive_integers_are_parsed_or_refused_in_one_line():
+    import argparse
+
+    assert cli.positive_int_list("1, 132,256") == (1, 132, 256)
+    assert cli.positive_int_list("") == ()
+    for bad in ("0,4", "1,x", "-2"):
+        with pytest.raises(argparse.ArgumentTypeError, match="comma-separated positive integers") as err:
+            cli.positive_int_list(bad)
+        assert "\n" not in str(err.value)
