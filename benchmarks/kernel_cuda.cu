@@ -1,7 +1,7 @@
 // The floor of a hand-written CUDA S-step: dependent products and a grid-wide Adam update.
 //
 // Built and run by benchmarks/kernel_cuda.py (nvcc for the GPU at hand); prints one JSON object
-// per line. Five kinds of kernels, each checked against a double-precision host reference
+// per line. Six kinds of kernels, each checked against a double-precision host reference
 // before it is timed:
 //
 //   chain_fma   one thread block of 256 threads; the loop body is `chain` dependent products
@@ -27,6 +27,8 @@
 //               mode "block" does the whole update in one block (no grid, no sync).
 //   seed_steps  many seeds, one thread block each: per step the tf32x3 chain on weight slots held
 //               in shared memory, then Adam over the seed's weights (moments in global memory).
+//   grid_step, cluster_step  one seed's steps of seed_steps over a cooperative grid or a cluster:
+//               the one-seed designs above timed as one program each, hand-offs included.
 
 #include <cooperative_groups.h>
 #include <cuda_runtime.h>
@@ -558,9 +560,9 @@ __global__ void cluster_adam(AdamArgs a, int mode) {
 template <int NSPLIT, int THREADS>
 __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ h0, const float* __restrict__ w0,
                                                   float* __restrict__ w_out, float* __restrict__ m,
-                                                  float* __restrict__ v, float* __restrict__ out, int n, int steps,
-                                                  int products, int first_slot, float coupling, float lr, float b1,
-                                                  float b2, float eps) {
+                                                  float* __restrict__ v, float* __restrict__ out, float*, int n,
+                                                  int steps, int products, int first_slot, float coupling, float lr,
+                                                  float b1, float b2, float eps) {
   extern __shared__ float4 shared_w4[];
   float* w = reinterpret_cast<float*>(shared_w4);
   __shared__ __align__(16) float4 X[NSPLIT > 1 ? 2 : 1][2][8][32];
@@ -608,6 +610,160 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   float4* w_out4 = reinterpret_cast<float4*>(w_out + size_t(seed) * n);
   for (int i = threadIdx.x; i < quads; i += blockDim.x) w_out4[i] = shared_w4[i];
   if (chain_warp && part == 0) store_fragments(frag, out + size_t(seed) * ROWS * WIDTH, r0, t);
+}
+
+// ----------------------------------------------------------------------------------------------
+// One seed's whole steps in one launch, spread over more than one multiprocessor (seed_steps'
+// arguments; `g`: n floats of global scratch for the gradient). The step of seed_steps — the
+// chain's `products` dependent products from the input rows, then Adam over all n weights with
+// the gradient synthetic_gradient(w) + coupling·h — with the one-seed designs whose parts
+// chain_mma, grid_adam and cluster_adam time apart, so that a step's parts and the hand-offs between
+// them are timed as one program:
+//   grid_step     a cooperative grid of one block per multiprocessor. The weights live in global
+//                 memory (w_out, each block's slice updated by that block). Per step block 0 copies
+//                 them into its shared memory, runs the chain on them, writes the whole gradient to
+//                 g (as the block that forms a step's products would), grid sync; every block
+//                 updates its slice of (w, m, v), grid sync.
+//   cluster_step  a thread-block cluster of CLUSTER blocks, each on a multiprocessor of its own. The
+//                 weights live in block 0's shared memory for the whole launch; per step block 0 runs
+//                 the chain and writes the gradient into its shared memory, cluster barrier; every
+//                 block updates its slice, reading and writing w and g in block 0's shared memory
+//                 (distributed shared memory) and its moments in global memory, cluster barrier.
+// Global memory written by another block is read through L2 (__ldcg), never a stale L1 line.
+template <int NSPLIT, int THREADS>
+__global__ void __launch_bounds__(THREADS) grid_step(const float* __restrict__ h0, const float* __restrict__ w0,
+                                                 float* __restrict__ w_out, float* __restrict__ m,
+                                                 float* __restrict__ v, float* __restrict__ out, float* __restrict__ g,
+                                                 int n, int steps, int products, int first_slot, float coupling,
+                                                 float lr, float b1, float b2, float eps) {
+  extern __shared__ float4 shared_w4[];  // block 0: the weights the chain reads
+  const float* w = reinterpret_cast<const float*>(shared_w4);
+  __shared__ __align__(16) float4 X[NSPLIT > 1 ? 2 : 1][2][8][32];
+  __shared__ float link;
+  cg::grid_group grid = cg::this_grid();
+  const int quads = n / 4, slots = n / (WIDTH * WIDTH);
+  const int per_block = (quads + gridDim.x - 1) / gridDim.x;
+  const int lo = blockIdx.x * per_block, hi = min(quads, lo + per_block);
+  float4* w4 = reinterpret_cast<float4*>(w_out);
+  float4* g4 = reinterpret_cast<float4*>(g);
+  float4* m4 = reinterpret_cast<float4*>(m);
+  float4* v4 = reinterpret_cast<float4*>(v);
+  for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) __stcg(w4 + i, reinterpret_cast<const float4*>(w0)[i]);
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  const int gl = lane / 4, t = lane % 4;
+  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
+  const bool chain_warp = blockIdx.x == 0 && warp < 2 * NSPLIT;
+  const int r0 = 16 * mtile + gl;
+  float4 frag[8];
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
+  const auto fetch = [&](int c, int kk, int nn) {
+    const float2 b =
+        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
+    return split_b(b.x, b.y);
+  };
+  grid.sync();
+  for (int s = 0; s < steps; ++s) {
+    if (blockIdx.x == 0) {
+      for (int i = threadIdx.x; i < quads; i += blockDim.x) shared_w4[i] = __ldcg(w4 + i);
+      __syncthreads();
+      if (chain_warp) {
+        load_fragments(frag, h0, r0, t);
+        product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
+        if (warp == 0 && lane == 0) link = frag[0].x;
+      }
+      __syncthreads();
+      const float h = coupling * link;
+      for (int i = threadIdx.x; i < quads; i += blockDim.x) {
+        const float4 wq = shared_w4[i];
+        __stcg(g4 + i, make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
+                                   synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h));
+      }
+    }
+    grid.sync();
+    const float c1 = correction(b1, s), c2 = correction(b2, s);
+    const AdamArgs a{nullptr, nullptr, nullptr, nullptr, n, steps, lr, b1, b2, eps};
+    for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) {
+      float4 wq = __ldcg(w4 + i), mq = m4[i], vq = v4[i];
+      adam_four(wq, mq, vq, __ldcg(g4 + i), c1, c2, a);
+      __stcg(w4 + i, wq);
+      m4[i] = mq;
+      v4[i] = vq;
+    }
+    grid.sync();
+  }
+  if (chain_warp && part == 0) store_fragments(frag, out, r0, t);
+}
+
+template <int CLUSTER, int NSPLIT, int THREADS>
+__global__ void __launch_bounds__(THREADS) cluster_step(const float* __restrict__ h0, const float* __restrict__ w0,
+                                                    float* __restrict__ w_out, float* __restrict__ m,
+                                                    float* __restrict__ v, float* __restrict__ out, float*, int n,
+                                                    int steps, int products, int first_slot, float coupling, float lr,
+                                                    float b1, float b2, float eps) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900  // clusters need sm_90
+  extern __shared__ float4 shared_w4[];  // block 0: the weights [n / 4], then the gradient [n / 4]
+  __shared__ __align__(16) float4 X[NSPLIT > 1 ? 2 : 1][2][8][32];
+  __shared__ float link;
+  cg::cluster_group cluster = cg::this_cluster();
+  const int rank = int(cluster.block_rank());
+  record_sm(rank);
+  const int quads = n / 4, slots = n / (WIDTH * WIDTH);
+  const int per_block = (quads + CLUSTER - 1) / CLUSTER;
+  const int lo = rank * per_block, hi = min(quads, lo + per_block);
+  float4* w_own = shared_w4;
+  float4* g_own = shared_w4 + quads;
+  float4* w_zero = cluster.map_shared_rank(w_own, 0);  // block 0's weights and gradient
+  float4* g_zero = cluster.map_shared_rank(g_own, 0);
+  float4* m4 = reinterpret_cast<float4*>(m);
+  float4* v4 = reinterpret_cast<float4*>(v);
+  const float* w = reinterpret_cast<const float*>(w_own);
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  const int gl = lane / 4, t = lane % 4;
+  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
+  const bool chain_warp = rank == 0 && warp < 2 * NSPLIT;
+  const int r0 = 16 * mtile + gl;
+  if (rank == 0)
+    for (int i = threadIdx.x; i < quads; i += blockDim.x) w_own[i] = reinterpret_cast<const float4*>(w0)[i];
+  float4 frag[8];
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
+  const auto fetch = [&](int c, int kk, int nn) {
+    const float2 b =
+        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
+    return split_b(b.x, b.y);
+  };
+  cluster.sync();
+  for (int s = 0; s < steps; ++s) {
+    if (rank == 0) {
+      if (chain_warp) {
+        load_fragments(frag, h0, r0, t);
+        product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
+        if (warp == 0 && lane == 0) link = frag[0].x;
+      }
+      __syncthreads();
+      const float h = coupling * link;
+      for (int i = threadIdx.x; i < quads; i += blockDim.x) {
+        const float4 wq = w_own[i];
+        g_own[i] = make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
+                               synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h);
+      }
+    }
+    cluster.sync();
+    const float c1 = correction(b1, s), c2 = correction(b2, s);
+    const AdamArgs a{nullptr, nullptr, nullptr, nullptr, n, steps, lr, b1, b2, eps};
+    for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) {
+      float4 wq = w_zero[i], mq = m4[i], vq = v4[i];
+      adam_four(wq, mq, vq, g_zero[i], c1, c2, a);
+      w_zero[i] = wq;
+      m4[i] = mq;
+      v4[i] = vq;
+    }
+    cluster.sync();
+  }
+  if (rank == 0) {
+    for (int i = threadIdx.x; i < quads; i += blockDim.x) reinterpret_cast<float4*>(w_out)[i] = w_own[i];
+    if (chain_warp && part == 0) store_fragments(frag, out, r0, t);
+  }
+#endif
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -792,9 +948,10 @@ static std::vector<int> parse_list(const char* s) {
 
 
 // ----------------------------------------------------------------------------------------------
-// seed_steps: each seed's data drawn apart; checks against the host for every seed, then timings.
-typedef void (*SeedKernel)(const float*, const float*, float*, float*, float*, float*, int, int, int, int, float,
-                           float, float, float, float);
+// seed_steps, grid_step, cluster_step: each seed's data drawn apart; checks against the host for
+// every seed the kernel runs, then timings.
+typedef void (*SeedKernel)(const float*, const float*, float*, float*, float*, float*, float*, int, int, int, int,
+                           float, float, float, float, float);
 
 // Slot `slot` of one seed's weights `src` as a [k][o] matrix (the B-fragment order undone).
 static std::vector<float> slot_matrix(const float* src, int slot) {
@@ -808,6 +965,64 @@ static std::vector<float> slot_matrix(const float* src, int slot) {
   return W;
 }
 
+// A whole-step kernel: seed_steps (cluster 0: one block per seed), grid_step (cluster -1: one seed
+// over a cooperative grid of one block per multiprocessor) or cluster_step (cluster >= 2: one seed
+// over a cluster of that many blocks).
+struct SeedVariant {
+  const char* kernel;
+  int nsplit, threads, cluster;
+  SeedKernel fn;
+};
+
+struct SeedArgs {
+  const float* h0;
+  const float* w0;
+  float *w_out, *m, *v, *out, *g;
+  int n, steps, products, first_slot;
+  float coupling, lr, b1, b2, eps;
+};
+
+// Dynamic shared memory of a launch: the weights (seed_steps, grid_step's block 0), or block 0's
+// weights and gradient, and at least the pad that keeps a cluster's blocks on multiprocessors of
+// their own (cluster_step).
+static size_t seed_smem(const SeedVariant& sv, int n) {
+  const size_t w = size_t(n) * sizeof(float);
+  return sv.cluster >= 2 ? std::max(2 * w, size_t(CLUSTER_PAD_BYTES)) : w;
+}
+
+static void launch_seed_variant(const SeedVariant& sv, int seeds, int grid_blocks, SeedArgs a) {
+  const size_t smem = seed_smem(sv, a.n);
+  if (sv.cluster == 0) {
+    sv.fn<<<seeds, sv.threads, smem>>>(a.h0, a.w0, a.w_out, a.m, a.v, a.out, a.g, a.n, a.steps, a.products,
+                                       a.first_slot, a.coupling, a.lr, a.b1, a.b2, a.eps);
+    return;
+  }
+  if (sv.cluster < 0) {
+    void* args[] = {&a.h0, &a.w0,    &a.w_out,      &a.m,        &a.v,  &a.out, &a.g,  &a.n,
+                    &a.steps, &a.products, &a.first_slot, &a.coupling, &a.lr, &a.b1,  &a.b2, &a.eps};
+    CHECK(cudaLaunchCooperativeKernel((void*)sv.fn, grid_blocks, sv.threads, args, smem, 0));
+    return;
+  }
+  cudaLaunchAttribute attr;
+  cudaLaunchConfig_t cfg = one_cluster(sv.cluster, sv.threads, &attr);
+  cfg.dynamicSmemBytes = smem;
+  CHECK(cudaLaunchKernelEx(&cfg, sv.fn, a.h0, a.w0, a.w_out, a.m, a.v, a.out, a.g, a.n, a.steps, a.products,
+                           a.first_slot, a.coupling, a.lr, a.b1, a.b2, a.eps));
+}
+
+// The variant's place in the JSON lines: its cluster size, and for a cluster how many
+// multiprocessors the last launch's blocks ran on.
+static std::string seed_variant_fields(const SeedVariant& sv, bool sms) {
+  char buf[96];
+  if (sv.cluster >= 2 && sms)
+    snprintf(buf, sizeof buf, ", \"cluster\": %d, \"distinct_sms\": %d", sv.cluster, distinct_sms(sv.cluster));
+  else if (sv.cluster >= 2)
+    snprintf(buf, sizeof buf, ", \"cluster\": %d", sv.cluster);
+  else
+    buf[0] = 0;
+  return buf;
+}
+
 static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, int products, int repeats,
                           std::mt19937& rng) {
   const int max_seeds = *std::max_element(seed_counts.begin(), seed_counts.end());
@@ -817,21 +1032,22 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
   // step on the weights the first step's Adam left: every slot, the wrap and the update are checked.
   const int slots = n / (WIDTH * WIDTH), check_steps = 5;
   const float lr = 1e-3f, b1 = 0.9f, b2 = 0.999f, eps = 1e-8f;
-  const size_t smem = size_t(n) * sizeof(float);
   cudaDeviceProp prop;
   CHECK(cudaGetDeviceProperties(&prop, 0));
+  const bool clusters = prop.major >= 9;
   std::normal_distribution<float> normal(0.f, 1.f);
   const float scale = std::sqrt(2.f / (1.f + SLOPE * SLOPE) / WIDTH);
   std::vector<float> hs(size_t(max_seeds) * ROWS * WIDTH), ws(size_t(max_seeds) * n);
   for (auto& x : hs) x = normal(rng);
   for (auto& x : ws) x = scale * normal(rng);
-  float *d_h, *d_w, *d_wout, *d_m, *d_v, *d_out;
+  float *d_h, *d_w, *d_wout, *d_m, *d_v, *d_out, *d_g;
   CHECK(cudaMalloc(&d_h, hs.size() * sizeof(float)));
   CHECK(cudaMalloc(&d_w, ws.size() * sizeof(float)));
   CHECK(cudaMalloc(&d_wout, ws.size() * sizeof(float)));
   CHECK(cudaMalloc(&d_m, ws.size() * sizeof(float)));
   CHECK(cudaMalloc(&d_v, ws.size() * sizeof(float)));
   CHECK(cudaMalloc(&d_out, hs.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_g, size_t(n) * sizeof(float)));
   CHECK(cudaMemcpy(d_h, hs.data(), hs.size() * sizeof(float), cudaMemcpyHostToDevice));
   CHECK(cudaMemcpy(d_w, ws.data(), ws.size() * sizeof(float), cudaMemcpyHostToDevice));
   auto zero_moments = [&] {
@@ -842,23 +1058,31 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
   // Adam with synthetic_gradient (coupling 0) for every seed, in double
   const std::vector<double> wr = adam_reference(ws, check_steps, lr, b1, b2, eps);
 
-  struct SeedVariant {
-    int nsplit, threads;
-    SeedKernel fn;
-  };
-  const SeedVariant variants[] = {{1, 128, seed_steps<1, 128>},
-                                  {1, 256, seed_steps<1, 256>},
-                                  {2, 128, seed_steps<2, 128>},
-                                  {2, 256, seed_steps<2, 256>}};
+  const SeedVariant variants[] = {{"seed_steps", 1, 128, 0, seed_steps<1, 128>},
+                                  {"seed_steps", 1, 256, 0, seed_steps<1, 256>},
+                                  {"seed_steps", 2, 128, 0, seed_steps<2, 128>},
+                                  {"seed_steps", 2, 256, 0, seed_steps<2, 256>},
+                                  {"grid_step", 2, 256, -1, grid_step<2, 256>},
+                                  {"grid_step", 2, 512, -1, grid_step<2, 512>},
+                                  {"cluster_step", 2, 256, 2, cluster_step<2, 2, 256>},
+                                  {"cluster_step", 2, 512, 2, cluster_step<2, 2, 512>},
+                                  {"cluster_step", 2, 256, 4, cluster_step<4, 2, 256>},
+                                  {"cluster_step", 2, 512, 4, cluster_step<4, 2, 512>},
+                                  {"cluster_step", 2, 256, 8, cluster_step<8, 2, 256>},
+                                  {"cluster_step", 2, 512, 8, cluster_step<8, 2, 512>}};
   const double gamma = product_gamma("tf32x3");
   std::vector<float> got_out(hs.size()), got_w(ws.size()), w1(ws.size());
   for (const SeedVariant& sv : variants) {
-    const int threads = sv.threads;
+    if (sv.cluster >= 2 && !clusters) continue;
+    const int threads = sv.threads, grid_blocks = prop.multiProcessorCount;
+    // one seed over many multiprocessors (grid_step, cluster_step), or one block per seed
+    const int check_seeds = sv.cluster == 0 ? max_seeds : 1;
+    const size_t smem = seed_smem(sv, n);
     cudaFuncAttributes attr;
     CHECK(cudaFuncGetAttributes(&attr, sv.fn));
     if (smem + attr.sharedSizeBytes > prop.sharedMemPerBlockOptin) {
-      fprintf(stderr, "seed_n=%d: %zu bytes of weights and the kernel's own %zu exceed a thread block's %zu bytes of "
-              "shared memory; give a smaller --seed-n\n", n, smem, size_t(attr.sharedSizeBytes),
+      fprintf(stderr, "seed_n=%d: %zu bytes of weights (%s) and the kernel's own %zu exceed a thread block's %zu "
+              "bytes of shared memory; give a smaller --seed-n\n", n, smem, sv.kernel, size_t(attr.sharedSizeBytes),
               size_t(prop.sharedMemPerBlockOptin));
       return 2;
     }
@@ -866,23 +1090,24 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
     int blocks_per_sm = 0;
     CHECK(cudaOccupancyMaxActiveBlocksPerMultiprocessor(&blocks_per_sm, sv.fn, threads, smem));
     if (blocks_per_sm < 1) {
-      fprintf(stderr, "seed_steps: one block of %d threads with %zu bytes of weights does not fit a multiprocessor\n",
-              threads, smem);
+      fprintf(stderr, "%s: one block of %d threads with %zu bytes of weights does not fit a multiprocessor\n",
+              sv.kernel, threads, smem);
       return 1;
     }
+    SeedArgs args{d_h, d_w, d_wout, d_m, d_v, d_out, d_g, n, 0, 0, 0, 0.f, lr, b1, b2, eps};
     struct ChainCheck {
       int steps, products, first_slot;
     };
     for (const ChainCheck cc : {ChainCheck{1, std::min(4, slots), 0}, ChainCheck{2, 2, slots - 1}}) {
       zero_moments();
-      sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, cc.steps, cc.products, cc.first_slot,
-                                          0.f, lr, b1, b2, eps);
+      args.steps = cc.steps, args.products = cc.products, args.first_slot = cc.first_slot, args.coupling = 0.f;
+      launch_seed_variant(sv, check_seeds, grid_blocks, args);
       CHECK(cudaGetLastError());
       CHECK(cudaMemcpy(got_out.data(), d_out, got_out.size() * sizeof(float), cudaMemcpyDeviceToHost));
       if (cc.steps == 1)  // the weights after one step (with coupling 0 Adam does not see the products)
         CHECK(cudaMemcpy(w1.data(), d_wout, w1.size() * sizeof(float), cudaMemcpyDeviceToHost));
       double worst_rel = 0.0, worst_over = 0.0, widest_bound = 0.0;
-      for (int i = 0; i < max_seeds; ++i) {
+      for (int i = 0; i < check_seeds; ++i) {
         // the last step's chain: from the input rows, on the weights that step started with
         const float* wsrc = (cc.steps == 1 ? ws.data() : w1.data()) + size_t(i) * n;
         std::vector<std::vector<float>> wi;
@@ -896,19 +1121,20 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
         worst_over = max_or_nan(worst_over, over);
         widest_bound = std::max(widest_bound, bound_scale);
       }
-      printf("{\"check\": \"chain_seed_steps\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"accumulators\": 3, "
+      printf("{\"check\": \"chain_%s\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"accumulators\": 3, "
              "\"threads\": %d, \"seeds\": %d, \"steps\": %d, \"products\": %d, \"first_slot\": %d, "
-             "\"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e, \"max_bound_over_max_h\": %.3e}\n",
-             sv.nsplit, threads, max_seeds, cc.steps, cc.products, cc.first_slot, worst_rel, worst_over, widest_bound);
+             "\"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e, \"max_bound_over_max_h\": %.3e%s}\n",
+             sv.kernel, sv.nsplit, threads, check_seeds, cc.steps, cc.products, cc.first_slot, worst_rel, worst_over,
+             widest_bound, seed_variant_fields(sv, true).c_str());
     }
     // Adam over several steps, every seed: its error relative to its own update
     zero_moments();
-    sv.fn<<<max_seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, check_steps, 2, 0, 0.f, lr, b1, b2,
-                                        eps);
+    args.steps = check_steps, args.products = 2, args.first_slot = 0, args.coupling = 0.f;
+    launch_seed_variant(sv, check_seeds, grid_blocks, args);
     CHECK(cudaGetLastError());
     CHECK(cudaMemcpy(got_w.data(), d_wout, got_w.size() * sizeof(float), cudaMemcpyDeviceToHost));
     std::string errs, abs_ws, updates;
-    for (int i = 0; i < max_seeds; ++i) {
+    for (int i = 0; i < check_seeds; ++i) {
       double err = 0.0, max_abs_w = 0.0, max_update = 0.0;
       for (size_t k = size_t(i) * n; k < size_t(i + 1) * n; ++k) {
         err = max_or_nan(err, std::fabs(double(got_w[k]) - wr[k]));
@@ -923,20 +1149,18 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
       snprintf(buf, sizeof buf, "%s%.6e", i ? ", " : "", max_update);
       updates += buf;
     }
-    printf("{\"check\": \"adam_seed_steps\", \"nsplit\": %d, \"threads\": %d, \"seeds\": %d, \"steps\": %d, "
-           "\"max_err_over_update\": [%s], \"max_abs_w\": [%s], \"max_update\": [%s]}\n",
-           sv.nsplit, threads, max_seeds, check_steps, errs.c_str(), abs_ws.c_str(), updates.c_str());
+    printf("{\"check\": \"adam_%s\", \"nsplit\": %d, \"threads\": %d, \"seeds\": %d, \"steps\": %d, "
+           "\"max_err_over_update\": [%s], \"max_abs_w\": [%s], \"max_update\": [%s]%s}\n",
+           sv.kernel, sv.nsplit, threads, check_seeds, check_steps, errs.c_str(), abs_ws.c_str(), updates.c_str(),
+           seed_variant_fields(sv, true).c_str());
     // timings; each line says whether the timed chains' last outputs are finite (values do not change
     // the tensor cores' speed, but a NaN is reported rather than hidden)
-    for (int seeds : seed_counts)
+    const std::vector<int> timed_seeds = sv.cluster == 0 ? seed_counts : std::vector<int>{1};
+    for (int seeds : timed_seeds)
       for (int p : {0, products}) {
         zero_moments();
-        const float ms = time_launches(
-            [&] {
-              sv.fn<<<seeds, threads, smem>>>(d_h, d_w, d_wout, d_m, d_v, d_out, n, loop, p, 0, 1e-9f, lr, b1, b2,
-                                              eps);
-            },
-            repeats);
+        args.steps = loop, args.products = p, args.first_slot = 0, args.coupling = 1e-9f;
+        const float ms = time_launches([&] { launch_seed_variant(sv, seeds, grid_blocks, args); }, repeats);
         CHECK(cudaGetLastError());
         CHECK(cudaMemcpy(got_out.data(), d_out, size_t(seeds) * ROWS * WIDTH * sizeof(float), cudaMemcpyDeviceToHost));
         bool finite = true;
@@ -945,11 +1169,12 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
           finite = finite && std::isfinite(got_out[k]);
           max_abs = std::max(max_abs, std::fabs(double(got_out[k])));
         }
-        printf("{\"kernel\": \"seed_steps\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"threads\": %d, "
-               "\"blocks_per_sm\": %d, \"seeds\": %d, \"products\": %d, \"n\": %d, \"steps\": %d, "
-               "\"us_per_step\": %.4f, \"out_finite\": %s, \"out_max_abs\": %.3e}\n",
-               sv.nsplit, threads, blocks_per_sm, seeds, p, n, loop, 1e3 * ms / loop, finite ? "true" : "false",
-               max_abs);
+        printf("{\"kernel\": \"%s\", \"precision\": \"tf32x3\", \"nsplit\": %d, \"threads\": %d, "
+               "\"blocks_per_sm\": %d, \"blocks\": %d, \"seeds\": %d, \"products\": %d, \"n\": %d, \"steps\": %d, "
+               "\"us_per_step\": %.4f, \"out_finite\": %s, \"out_max_abs\": %.3e%s}\n",
+               sv.kernel, sv.nsplit, threads, blocks_per_sm,
+               sv.cluster == 0 ? seeds : sv.cluster < 0 ? grid_blocks : sv.cluster, seeds, p, n, loop,
+               1e3 * ms / loop, finite ? "true" : "false", max_abs, seed_variant_fields(sv, false).c_str());
       }
   }
   return 0;

@@ -39,6 +39,16 @@ hand):
   slot wrapping to the first, the second on the weights the first step's Adam left) and its
   weights after five steps against Adam's. This is the floor of a hand-written kernel for goal 4's
   256 seeds, where one seed's step cannot spread over the whole GPU.
+- ``grid_step`` and ``cluster_step``: one seed's whole steps (``seed_steps``' step, the same
+  checks) in one launch over more than one multiprocessor, so that the one-seed designs whose parts
+  the kernels above time apart are timed as one program, the hand-offs between the parts included:
+  over a cooperative grid (the weights in global memory; block 0 copies them into its shared memory,
+  runs the chain and writes the whole gradient; grid sync; every block updates its slice; grid sync)
+  and over a cluster of 2, 4 or 8 blocks (the weights and the gradient in block 0's shared memory for
+  the whole launch, read and written by every block's slice of Adam through distributed shared
+  memory; the cluster's barrier between). ``one_seed_steps`` in the JSON: every one-seed design's
+  step measured as one program (with ``seed_steps`` at one seed, the one-block design), the
+  measured floor that the estimates above only add up.
 
 Every kernel is checked against a double-precision host computation before it is timed (the
 chains entry by entry against a forward-error bound of the chain, ``reference_chain`` in the
@@ -51,8 +61,8 @@ approach, not kernels::
     python -m benchmarks.kernel_cuda --out kernel_cuda.json
 
 Needs nvcc and an NVIDIA GPU (``--arch native`` builds for the GPU present); results:
-benchmarks/RESULTS.md, twenty-second session (one seed), thirty-ninth (many seeds) and fortieth
-(clusters).
+benchmarks/RESULTS.md, twenty-second session (one seed), thirty-ninth (many seeds), fortieth
+(clusters) and forty-first (one seed's whole steps in one launch).
 """
 
 from __future__ import annotations
@@ -240,7 +250,38 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
     seeds = seeds_estimate([r for r in lines if r.get("kernel") == "seed_steps"], products, run_steps)
     return {"device": device, "checks": checks, "failed_checks": failed, "chain_fits": fits,
             "adam_us_per_step": adam, "floor_estimate": estimate,
-            "cluster_estimates": cluster_estimates(fits, adam, products), "seed_steps": seeds}
+            "cluster_estimates": cluster_estimates(fits, adam, products), "seed_steps": seeds,
+            "one_seed_steps": one_seed_steps(lines, products)}
+
+
+STEP_KERNELS = ("seed_steps", "grid_step", "cluster_step")
+"""The kernels that run whole steps (the chain, the gradient's hand-off and Adam) in one launch."""
+
+
+def one_seed_steps(lines: list[dict], products: int) -> dict | None:
+    """The whole-step kernels at one seed, each one program: ``seed_steps`` (one block), ``grid_step``
+    (a cooperative grid) and ``cluster_step`` (a cluster of 2, 4 or 8 blocks). Per variant its µs
+    per step with ``products`` products and with none (Adam and the hand-offs alone); per design
+    (kernel and cluster size) its fastest variant with the products; and the fastest of all, the
+    measured floor of a hand-written one-seed step before the head, the loss, the gather and the
+    statistics."""
+    rows = [r for r in lines if r.get("kernel") in STEP_KERNELS and r.get("seeds") == 1]
+    if not rows:
+        return None
+    design = lambda r: r["kernel"] + (f"_cluster{r['cluster']}" if r.get("cluster", 1) > 1 else "")  # noqa: E731
+    name = lambda r: f"{design(r)}_split{r['nsplit']}_{r['threads']}threads"  # noqa: E731
+    variants: dict = {}
+    for r in rows:
+        variants.setdefault(name(r), {})["products" if r["products"] == products else "adam_alone"
+                                         if r["products"] == 0 else f"{r['products']}_products"] = r["us_per_step"]
+    designs: dict = {}
+    for r in rows:
+        if r["products"] == products and (design(r) not in designs
+                                          or r["us_per_step"] < designs[design(r)]["us_per_step"]):
+            designs[design(r)] = {"variant": name(r), "us_per_step": r["us_per_step"],
+                                  "adam_alone_us": variants[name(r)].get("adam_alone")}
+    best = min(designs, key=lambda d: designs[d]["us_per_step"]) if designs else None
+    return {"products": products, "variants": variants, "designs": designs, "fastest": best}
 
 
 def cluster_estimates(fits: dict, adam: dict, products: int) -> dict:
@@ -424,6 +465,12 @@ def main(argv=None) -> int:
                 print(f"{e['seeds']} seeds, one block each ({b['variant']}, {b['blocks_per_sm']} per multiprocessor), "
                       f"{what} over {args.seed_n} weights: {b['us_per_step']:.1f} µs per step; "
                       f"{e['run_steps']} steps {b['run_s']:.1f} s", flush=True)
+    if summary["one_seed_steps"]:
+        e = summary["one_seed_steps"]
+        for d, b in sorted(e["designs"].items(), key=lambda kv: kv[1]["us_per_step"]):
+            alone = f" ({b['adam_alone_us']:.2f} µs without the products)" if b["adam_alone_us"] is not None else ""
+            print(f"one seed, whole steps in one launch, {d:22s}: {b['us_per_step']:.2f} µs per step of "
+                  f"{e['products']} products + Adam{alone} ({b['variant']})", flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"env": env, "args": vars(args), "lines": lines, **summary}, f, indent=1)

@@ -7,7 +7,7 @@ check). Here: a model
 of ``mma.m16n8k8``'s fragments (PTX's layout, one 16-row tile, 32 lanes) shows that storing W's
 rows in an accumulator fragment's order lets a product's output fragments serve as the next
 product's input fragments unchanged, as the kernel does; the summary's fits, checks and estimates
-(one seed, one thread-block cluster, many seeds); the NumPy emulation of Adam's float32 check; and, where nvcc is installed,
+(one seed, one thread-block cluster, many seeds, one seed's whole steps in one launch); the NumPy emulation of Adam's float32 check; and, where nvcc is installed,
 that the kernels build for sm_90 and sm_90a without spilling registers.
 """
 
@@ -184,6 +184,44 @@ def test_many_seed_summary_checks_every_seed_and_estimates_a_run():
     # one seed beyond its own bound fails the check, and the check names it
     bad = kernel_cuda.summarize(_lines() + _seed_lines([bound / 10, bound * 1.01, bound / 10]), products=32)
     assert [(c["check"], c["worst_seed"]) for c in bad["failed_checks"]] == [("adam_seed_steps", 1)]
+
+
+def test_one_seed_whole_step_kernels_are_summarized_per_design():
+    """grid_step and cluster_step (one seed, one program each) beside seed_steps at one seed: per
+    design its fastest variant with the products, its time without them, and the fastest design;
+    their checks go through like the others', and a cluster whose blocks shared a multiprocessor
+    fails."""
+    bound = kernel_cuda.adam_bound(5, 0.4, 5e-3)
+    lines = _lines() + _seed_lines([bound / 10] * 3)
+    timed = {("grid_step", None, 256): (20.0, 41.0), ("grid_step", None, 512): (15.0, 33.0),
+             ("cluster_step", 2, 256): (6.0, 27.0), ("cluster_step", 8, 512): (4.0, 26.5)}
+    for (kernel, cluster, threads), (alone, step) in timed.items():
+        extra = {"cluster": cluster} if cluster else {}
+        checked = {**extra, "distinct_sms": cluster} if cluster else {}
+        lines.append({"check": f"chain_{kernel}", "precision": "tf32x3", "nsplit": 2, "accumulators": 3,
+                      "threads": threads, "seeds": 1, "steps": 1, "products": 4, "first_slot": 0,
+                      "max_rel_err": 1e-6, "max_err_over_bound": 1e-2, "max_bound_over_max_h": 3e-4, **checked})
+        lines.append({"check": f"adam_{kernel}", "nsplit": 2, "threads": threads, "seeds": 1, "steps": 5,
+                      "max_err_over_update": [bound / 10], "max_abs_w": [0.4], "max_update": [5e-3], **checked})
+        lines += [{"kernel": kernel, "precision": "tf32x3", "nsplit": 2, "threads": threads, "blocks_per_sm": 1,
+                   "blocks": cluster or 132, "seeds": 1, "products": p, "n": 22664, "steps": 500,
+                   "us_per_step": us, **extra} for p, us in ((0, alone), (32, step))]
+    s = kernel_cuda.summarize(lines, products=32)
+    assert not s["failed_checks"]
+    e = s["one_seed_steps"]
+    # seed_steps at one seed (the one-block design, _seed_lines: 8.0 and 6.0 µs) is one of them
+    assert sorted(e["designs"]) == ["cluster_step_cluster2", "cluster_step_cluster8", "grid_step", "seed_steps"]
+    assert e["designs"]["grid_step"] == {"variant": "grid_step_split2_512threads", "us_per_step": 33.0,
+                                         "adam_alone_us": 15.0}
+    assert e["designs"]["seed_steps"]["us_per_step"] == pytest.approx(6.0)
+    assert e["variants"]["cluster_step_cluster8_split2_512threads"] == {"adam_alone": 4.0, "products": 26.5}
+    assert e["fastest"] == "seed_steps"
+    # the 256-seed rows stay out of it, and the many-seed summary keeps to seed_steps
+    assert s["seed_steps"]["step"]["us_per_step"] == 60.0
+    shared = [dict(r, distinct_sms=1) if r.get("check") == "adam_cluster_step" and r["cluster"] == 8 else r
+              for r in lines]
+    failed = kernel_cuda.summarize(shared, products=32)["failed_checks"]
+    assert [(c["check"], c["cluster"]) for c in failed] == [("adam_cluster_step", 8)]
 
 
 def test_one_seed_check_reports_scalars_and_a_nan_fails_it():
