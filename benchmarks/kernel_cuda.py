@@ -46,7 +46,10 @@ hand):
   runs the chain and writes the whole gradient; grid sync; every block updates its slice; grid sync)
   and over a cluster of 2, 4 or 8 blocks (the weights and the gradient in block 0's shared memory for
   the whole launch, read and written by every block's slice of Adam through distributed shared
-  memory; the cluster's barrier between). ``one_seed_steps`` in the JSON: every one-seed design's
+  memory; the cluster's barrier between); ``cluster_step_presplit``, the cluster with the weights
+  split into their TF32 parts once per step, by the blocks that update them, into block 0's shared
+  memory (the float32 weights and the gradient in global memory), so that the chain reads its
+  operands as ``chain_mma`` does instead of splitting them at every product. ``one_seed_steps`` in the JSON: every one-seed design's
   step measured as one program (with ``seed_steps`` at one seed, the one-block design), the
   measured floor that the estimates above only add up.
 
@@ -254,13 +257,14 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
             "one_seed_steps": one_seed_steps(lines, products)}
 
 
-STEP_KERNELS = ("seed_steps", "grid_step", "cluster_step")
+STEP_KERNELS = ("seed_steps", "grid_step", "cluster_step", "cluster_step_presplit")
 """The kernels that run whole steps (the chain, the gradient's hand-off and Adam) in one launch."""
 
 
 def one_seed_steps(lines: list[dict], products: int) -> dict | None:
     """The whole-step kernels at one seed, each one program: ``seed_steps`` (one block), ``grid_step``
-    (a cooperative grid) and ``cluster_step`` (a cluster of 2, 4 or 8 blocks). Per variant its µs
+    (a cooperative grid), ``cluster_step`` and ``cluster_step_presplit`` (a cluster of 2, 4 or 8
+    blocks). Per variant its µs
     per step with ``products`` products and with none (Adam and the hand-offs alone); per design
     (kernel and cluster size) its fastest variant with the products; and the fastest of all, the
     measured floor of a hand-written one-seed step before the head, the loss, the gather and the

@@ -194,7 +194,8 @@ def test_one_seed_whole_step_kernels_are_summarized_per_design():
     bound = kernel_cuda.adam_bound(5, 0.4, 5e-3)
     lines = _lines() + _seed_lines([bound / 10] * 3)
     timed = {("grid_step", None, 256): (20.0, 41.0), ("grid_step", None, 512): (15.0, 33.0),
-             ("cluster_step", 2, 256): (6.0, 27.0), ("cluster_step", 8, 512): (4.0, 26.5)}
+             ("cluster_step", 2, 256): (6.0, 27.0), ("cluster_step", 8, 512): (4.0, 26.5),
+             ("cluster_step_presplit", 4, 512): (2.0, 5.5)}
     for (kernel, cluster, threads), (alone, step) in timed.items():
         extra = {"cluster": cluster} if cluster else {}
         checked = {**extra, "distinct_sms": cluster} if cluster else {}
@@ -210,12 +211,13 @@ def test_one_seed_whole_step_kernels_are_summarized_per_design():
     assert not s["failed_checks"]
     e = s["one_seed_steps"]
     # seed_steps at one seed (the one-block design, _seed_lines: 8.0 and 6.0 µs) is one of them
-    assert sorted(e["designs"]) == ["cluster_step_cluster2", "cluster_step_cluster8", "grid_step", "seed_steps"]
+    assert sorted(e["designs"]) == ["cluster_step_cluster2", "cluster_step_cluster8", "cluster_step_presplit_cluster4",
+                                    "grid_step", "seed_steps"]
     assert e["designs"]["grid_step"] == {"variant": "grid_step_split2_512threads", "us_per_step": 33.0,
                                          "adam_alone_us": 15.0}
     assert e["designs"]["seed_steps"]["us_per_step"] == pytest.approx(6.0)
     assert e["variants"]["cluster_step_cluster8_split2_512threads"] == {"adam_alone": 4.0, "products": 26.5}
-    assert e["fastest"] == "seed_steps"
+    assert e["fastest"] == "cluster_step_presplit_cluster4"
     # the 256-seed rows stay out of it, and the many-seed summary keeps to seed_steps
     assert s["seed_steps"]["step"]["us_per_step"] == 60.0
     shared = [dict(r, distinct_sms=1) if r.get("check") == "adam_cluster_step" and r["cluster"] == 8 else r
