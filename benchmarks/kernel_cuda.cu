@@ -140,13 +140,15 @@ __device__ __forceinline__ BFragment split_b(float v0, float v1) {
 // Both double-buffer their fragments (`buf` flips at every sync), so that one barrier per product
 // suffices: a part writes a buffer again only after every part has passed the barrier that follows
 // its reads of it.
-// TileExchange: the warps of one block, through its shared memory X, at named barrier 1 + mtile.
+// TileExchange: the warps of one block, through its shared memory X, at named barrier 1 + mtile
+// (or `barrier`, where several chains share the block).
 struct TileExchange {
   float4 (*X)[2][8][32];
   int buf, mtile, lane, threads;
+  int barrier = -1;
   __device__ __forceinline__ void put(int nn, float4 v) { X[buf][mtile][nn][lane] = v; }
   __device__ __forceinline__ void sync(float4 (&frag)[8]) {
-    asm volatile("bar.sync %0, %1;" ::"r"(1 + mtile), "r"(threads) : "memory");
+    asm volatile("bar.sync %0, %1;" ::"r"(barrier >= 0 ? barrier : 1 + mtile), "r"(threads) : "memory");
 #pragma unroll
     for (int kk = 0; kk < 8; ++kk) frag[kk] = X[buf][mtile][kk][lane];
     buf ^= 1;
@@ -283,6 +285,35 @@ __global__ void __launch_bounds__(64 * NSPLIT) chain_mma(const float* __restrict
   };
   for (int s = 0; s < steps; ++s) product_chain<PASSES, NSPLIT, ACCS>(frag, exchange, part, chain, fetch);
   if (part == 0) store_fragments(frag, out, r0, t);
+}
+
+// CHAINS independent tf32x3 chains (three accumulators) at once in one block, each on its own
+// 2·NSPLIT warps with its own exchange buffers and named barriers and chain_mma's shared B
+// fragments; chain i writes its output at out + i·ROWS·WIDTH. A GMR step's products are not all
+// one chain: the decoder and the translation network run side by side, and a layer's weight
+// gradient is off the path of the input gradients. Whether such products cost a dependent
+// product's time each, or overlap, is what this kernel times (µs per product of each chain).
+template <int NSPLIT, int CHAINS>
+__global__ void __launch_bounds__(64 * NSPLIT * CHAINS) chains_mma(const float* __restrict__ h0, const float* __restrict__ w,
+                                                                   float* __restrict__ out, int steps, int chain) {
+  static_assert(NSPLIT > 1 && 1 + 2 * CHAINS <= 16, "named barriers 1 .. 2·CHAINS");
+  __shared__ __align__(16) uint2 Bhi[8][8][32];
+  __shared__ __align__(16) uint2 Blo[8][8][32];
+  extern __shared__ float4 chain_exchange[];  // [CHAINS][2][2][8][32]
+  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
+  const int g = lane / 4, t = lane % 4;
+  const int c = warp / (2 * NSPLIT), local = warp % (2 * NSPLIT);
+  const int mtile = local / NSPLIT, part = local % NSPLIT;
+  load_b_fragments<3>(Bhi, Blo, w);
+  float4 frag[8];
+  const int r0 = 16 * mtile + g;
+  load_fragments(frag, h0, r0, t);
+  __syncthreads();
+  auto* X = reinterpret_cast<float4 (*)[2][8][32]>(chain_exchange + c * (2 * 2 * 8 * 32));
+  TileExchange exchange{X, 0, mtile, lane, 32 * NSPLIT, 1 + 2 * c + mtile};
+  const auto fetch = [&](int, int kk, int nn) { return BFragment{Bhi[kk][nn][lane], Blo[kk][nn][lane]}; };
+  for (int s = 0; s < steps; ++s) product_chain<3, NSPLIT, 3>(frag, exchange, part, chain, fetch);
+  if (part == 0) store_fragments(frag, out + c * ROWS * WIDTH, r0, t);
 }
 
 // The multiprocessor each block of the last cluster launch ran on (block rank r: cluster_sm[r]),
@@ -948,7 +979,15 @@ struct ChainVariant {
   int threads;
   ChainKernel fn;
   int cluster = 1;  // blocks in the launch's one cluster (1: a plain launch of one block)
+  int concurrent = 1;  // independent chains at once in the block (chains_mma), each writing its output
 };
+
+// The most chains chains_mma runs at once (its variants below), and its exchange buffers in
+// dynamic shared memory: [concurrent][2][2][8][32] float4.
+constexpr int MAX_CONCURRENT = 4;
+static size_t chains_smem(int concurrent) {
+  return concurrent > 1 ? size_t(concurrent) * 2 * 2 * 8 * 32 * sizeof(float4) : 0;
+}
 
 // Dynamic shared memory that every cluster launch asks for and leaves unused: with it no two blocks
 // fit one multiprocessor (its 228 KiB), so a cluster's blocks run on multiprocessors of their own
@@ -986,7 +1025,7 @@ static int distinct_sms(int cluster) {
 // One launch of a chain kernel: one block, or one cluster of v.cluster blocks.
 static void launch_chain(const ChainVariant& v, const float* h0, const float* w, float* out, int steps, int chain) {
   if (v.cluster == 1) {
-    v.fn<<<1, v.threads>>>(h0, w, out, steps, chain);
+    v.fn<<<1, v.threads, chains_smem(v.concurrent)>>>(h0, w, out, steps, chain);
     return;
   }
   cudaLaunchAttribute attr;
@@ -1312,7 +1351,7 @@ int main(int argc, char** argv) {
   float *d_h0, *d_w, *d_out;
   CHECK(cudaMalloc(&d_h0, h0.size() * sizeof(float)));
   CHECK(cudaMalloc(&d_w, w.size() * sizeof(float)));
-  CHECK(cudaMalloc(&d_out, h0.size() * sizeof(float)));
+  CHECK(cudaMalloc(&d_out, MAX_CONCURRENT * h0.size() * sizeof(float)));
   CHECK(cudaMemcpy(d_h0, h0.data(), h0.size() * sizeof(float), cudaMemcpyHostToDevice));
   CHECK(cudaMemcpy(d_w, w.data(), w.size() * sizeof(float), cudaMemcpyHostToDevice));
 
@@ -1324,6 +1363,9 @@ int main(int argc, char** argv) {
       {"chain_mma", "tf32x3", 2, 1, 128, chain_mma<3, 2, 1>},
       {"chain_mma", "tf32x3", 2, 3, 128, chain_mma<3, 2, 3>},
       {"chain_mma", "tf32x3", 4, 1, 256, chain_mma<3, 4, 1>},
+      {"chains_mma", "tf32x3", 2, 3, 256, chains_mma<2, 2>, 1, 2},
+      {"chains_mma", "tf32x3", 2, 3, 384, chains_mma<2, 3>, 1, 3},
+      {"chains_mma", "tf32x3", 2, 3, 512, chains_mma<2, MAX_CONCURRENT>, 1, MAX_CONCURRENT},
       {"chain_cluster", "tf32x3", 1, 3, 64, chain_cluster<2, 1>, 2},
       {"chain_cluster", "tf32x3", 2, 3, 128, chain_cluster<2, 2>, 2},
       {"chain_cluster", "tf32x3", 1, 3, 64, chain_cluster<4, 1>, 4},
@@ -1337,28 +1379,39 @@ int main(int argc, char** argv) {
   };
   const int check_chain = 4;
   const std::vector<std::vector<float>> one_weight{w};
-  std::vector<float> got(h0.size());
+  std::vector<float> got(MAX_CONCURRENT * h0.size());
   const bool clusters = prop.major >= 9;  // thread-block clusters need sm_90
   for (const ChainVariant& v : variants) {
     if (v.cluster > 1 && !clusters) continue;
     if (v.cluster > 1) allow_cluster_pad((const void*)v.fn);
+    if (v.concurrent > 1)
+      CHECK(cudaFuncSetAttribute((const void*)v.fn, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                 int(chains_smem(v.concurrent))));
     const Reference ref = reference_chain(h0, one_weight, check_chain, product_gamma(v.precision));
-    CHECK(cudaMemset(d_out, 0, h0.size() * sizeof(float)));
+    CHECK(cudaMemset(d_out, 0, v.concurrent * h0.size() * sizeof(float)));
     launch_chain(v, d_h0, d_w, d_out, 1, check_chain);
     CHECK(cudaGetLastError());
-    CHECK(cudaMemcpy(got.data(), d_out, got.size() * sizeof(float), cudaMemcpyDeviceToHost));
-    double rel, over_bound;
-    chain_errors(got, ref, &rel, &over_bound);
+    CHECK(cudaMemcpy(got.data(), d_out, v.concurrent * h0.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    double rel = 0.0, over_bound = 0.0;  // the worst of the chains
+    for (int c = 0; c < v.concurrent; ++c) {
+      const std::vector<float> one(got.begin() + c * h0.size(), got.begin() + (c + 1) * h0.size());
+      double rel_c, over_c;
+      chain_errors(one, ref, &rel_c, &over_c);
+      rel = max_or_nan(rel, rel_c);
+      over_bound = max_or_nan(over_bound, over_c);
+    }
     printf("{\"check\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"cluster\": %d, "
-           "\"distinct_sms\": %d, \"products\": %d, \"max_rel_err\": %.3e, \"max_err_over_bound\": %.3e}\n",
+           "\"distinct_sms\": %d, \"concurrent\": %d, \"products\": %d, \"max_rel_err\": %.3e, "
+           "\"max_err_over_bound\": %.3e}\n",
            v.kernel, v.precision, v.nsplit, v.accumulators, v.cluster, v.cluster > 1 ? distinct_sms(v.cluster) : 1,
-           check_chain, rel, over_bound);
+           v.concurrent, check_chain, rel, over_bound);
     for (int chain : chains) {
       const float ms = time_launches([&] { launch_chain(v, d_h0, d_w, d_out, steps, chain); }, repeats);
       CHECK(cudaGetLastError());
       printf("{\"kernel\": \"%s\", \"precision\": \"%s\", \"nsplit\": %d, \"accumulators\": %d, \"threads\": %d, "
-             "\"cluster\": %d, \"chain\": %d, \"steps\": %d, \"us_per_iteration\": %.4f}\n",
-             v.kernel, v.precision, v.nsplit, v.accumulators, v.threads, v.cluster, chain, steps, 1e3 * ms / steps);
+             "\"cluster\": %d, \"concurrent\": %d, \"chain\": %d, \"steps\": %d, \"us_per_iteration\": %.4f}\n",
+             v.kernel, v.precision, v.nsplit, v.accumulators, v.threads, v.cluster, v.concurrent, chain, steps,
+             1e3 * ms / steps);
     }
   }
 

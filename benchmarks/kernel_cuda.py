@@ -15,6 +15,11 @@ hand):
   in the order of an accumulator fragment, so no shuffle and no shared memory sits between two
   products), or with the columns split over 2 or 4 warps that exchange fragments through shared
   memory. The least-squares slope over the chain lengths is one dependent product.
+- ``chains_mma``: 2, 3 or 4 such chains (tf32x3, two warps per row tile) at once in one block, each
+  on warps, exchange buffers and named barriers of its own: a GMR step's products are not one
+  chain (the decoder and the translation network run side by side, and a layer's weight gradient
+  is off the path of the input gradients), so what products beside the dependent chain cost is
+  timed here, as µs per product of each chain.
 - ``chain_wgmma`` (sm_90a only): the same chain with Hopper's warpgroup products (``wgmma``,
   m64n64k8, A from registers in the same fragments, B in shared memory), one warpgroup, the
   chain's 32 rows (the minibatch's 20, padded) padded again to 64.
@@ -229,19 +234,23 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
     chains = [r for r in lines if r.get("kernel", "").startswith("chain")]
     fits = {}
     variant = lambda r: (r["kernel"], r["precision"], r["nsplit"], r.get("accumulators", 1), r["threads"],  # noqa: E731
-                         r.get("cluster", 1))
+                         r.get("cluster", 1), r.get("concurrent", 1))
     in_cluster = lambda c: f"_cluster{c}" if c > 1 else ""  # noqa: E731
+    at_once = lambda c: f"_{c}chains" if c > 1 else ""  # noqa: E731
     for key in sorted({variant(r) for r in chains}):
         pts = [(r["chain"], r["us_per_iteration"]) for r in chains if variant(r) == key]
         if len({c for c, _ in pts}) >= 2:
             slope, intercept = line_fit(pts)
-            fits[f"{key[0]}_{key[1]}_split{key[2]}_acc{key[3]}_{key[4]}threads{in_cluster(key[5])}"] = {
-                "us_per_product": slope, "us_per_iteration_besides": intercept, "cluster": key[5]}
+            fits[f"{key[0]}_{key[1]}_split{key[2]}_acc{key[3]}_{key[4]}threads{in_cluster(key[5])}{at_once(key[6])}"] = {
+                "us_per_product": slope, "us_per_iteration_besides": intercept, "cluster": key[5],
+                "concurrent": key[6]}
     adam = {f"{r['kernel']}_{r['mode']}_{r['threads']}threads{in_cluster(r.get('cluster', 1))}": r["us_per_step"]
             for r in lines if r.get("kernel", "").endswith("adam")}
     estimate = None
-    # the one-block chains with the grid's Adam; the clusters' chains with their own Adam (below)
-    accurate = {k: v for k, v in fits.items() if ("_tf32x3_" in k or "_ieee_" in k) and v["cluster"] == 1}
+    # the one-block chains with the grid's Adam; the clusters' chains with their own Adam (below);
+    # chains run side by side (chains_mma) time each of them, not one chain alone
+    accurate = {k: v for k, v in fits.items()
+                if ("_tf32x3_" in k or "_ieee_" in k) and v["cluster"] == 1 and v["concurrent"] == 1}
     updates = {k: v for k, v in adam.items() if k.startswith("grid_adam_update")}
     if accurate and updates:
         best = min(accurate, key=lambda k: accurate[k]["us_per_product"])
@@ -310,7 +319,7 @@ def cluster_estimates(fits: dict, adam: dict, products: int) -> dict:
                           "adam_kernel": update, "adam_us": updates[update],
                           "barrier_alone_us": min(syncs) if syncs else None,
                           "us_per_step": products * chains[best]["us_per_product"] + updates[update]}
-    accurate = {k: v for k, v in fits.items() if "_tf32x3_" in k or "_ieee_" in k}
+    accurate = {k: v for k, v in fits.items() if ("_tf32x3_" in k or "_ieee_" in k) and v.get("concurrent", 1) == 1}
     handoff = {k: v for k, v in adam.items() if k.startswith(("grid_adam_update", "cluster_adam_update"))}
     if out and accurate and handoff:
         best = min(accurate, key=lambda k: accurate[k]["us_per_product"])
@@ -430,6 +439,7 @@ def main(argv=None) -> int:
             width = (f" (bound at most {c['max_bound_over_max_h']:.1e} of max|h|)"
                      if "max_bound_over_max_h" in c else "")
             blocks = f" cluster {c['cluster']}" if c.get("cluster", 1) > 1 else ""
+            blocks += f" {c['concurrent']} chains at once" if c.get("concurrent", 1) > 1 else ""
             what = (f"{c['precision']:6s} split {c['nsplit']} acc {c['accumulators']}{blocks}{threads}: max error "
                     f"{c['max_rel_err']:.2e} of max|h|, {c['max_err_over_bound']:.2e} of its bound{width}")
         else:

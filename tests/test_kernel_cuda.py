@@ -146,6 +146,30 @@ def test_cluster_chains_get_their_own_estimate_with_the_clusters_adam():
     assert [(c["check"], c["cluster"]) for c in failed] == [("chain_cluster", 4)]
 
 
+def test_chains_side_by_side_get_fits_of_their_own_and_stay_out_of_the_serial_estimates():
+    """chains_mma (several chains at once in one block): a fit per number of chains, its check
+    covers every chain, and its µs per product (of each chain) never stands for one dependent
+    product in the estimates, even when it is the smallest."""
+    lines = _lines()
+    for concurrent, per_product in ((2, 0.1), (4, 0.2)):
+        lines.append({"check": "chains_mma", "precision": "tf32x3", "nsplit": 2, "accumulators": 3, "cluster": 1,
+                      "distinct_sms": 1, "concurrent": concurrent, "products": 4, "max_rel_err": 1e-6,
+                      "max_err_over_bound": 1e-2})
+        lines += [{"kernel": "chains_mma", "precision": "tf32x3", "nsplit": 2, "accumulators": 3,
+                   "threads": 128 * concurrent, "cluster": 1, "concurrent": concurrent, "chain": c, "steps": 10,
+                   "us_per_iteration": 0.1 + per_product * c} for c in (1, 8, 32)]
+    s = kernel_cuda.summarize(lines, products=32)
+    assert not s["failed_checks"]
+    fit = s["chain_fits"]["chains_mma_tf32x3_split2_acc3_512threads_4chains"]
+    assert fit["us_per_product"] == pytest.approx(0.2) and fit["concurrent"] == 4
+    assert s["chain_fits"]["chain_mma_tf32x3_split2_acc1_128threads"]["concurrent"] == 1
+    assert s["floor_estimate"]["product_kernel"] == "chain_mma_tf32x3_split2_acc1_128threads"
+    bad = [dict(r, max_err_over_bound=1.2) if r.get("check") == "chains_mma" and r["concurrent"] == 4 else r
+           for r in lines]
+    assert [(c["check"], c["concurrent"]) for c in kernel_cuda.summarize(bad, products=32)["failed_checks"]] == [
+        ("chains_mma", 4)]
+
+
 def _seed_lines(errs):
     """The many-seed kernel's lines: a per-seed Adam check with errors ``errs`` (relative to each
     seed's update) and timings for 1 and 256 seeds, two variants."""
