@@ -1,8 +1,8 @@
 // The floor of a hand-written CUDA S-step: dependent products and a grid-wide Adam update.
 //
 // Built and run by benchmarks/kernel_cuda.py (nvcc for the GPU at hand); prints one JSON object
-// per line. Six kinds of kernels, each checked against a double-precision host reference
-// before it is timed:
+// per line. These kernels, each checked against a double-precision host reference before it is
+// timed:
 //
 //   chain_fma   one thread block of 256 threads; the loop body is `chain` dependent products
 //               h <- leaky_relu(h W) of h [32, 64] by W [64, 64] on the CUDA cores (float32
@@ -27,8 +27,10 @@
 //               mode "block" does the whole update in one block (no grid, no sync).
 //   seed_steps  many seeds, one thread block each: per step the tf32x3 chain on weight slots held
 //               in shared memory, then Adam over the seed's weights (moments in global memory).
-//   grid_step, cluster_step  one seed's steps of seed_steps over a cooperative grid or a cluster:
-//               the one-seed designs above timed as one program each, hand-offs included.
+//   chains_mma  2-4 independent chains of chain_mma at once in one block.
+//   grid_step, cluster_step, cluster_step_presplit  one seed's steps of seed_steps over a
+//               cooperative grid or a cluster (the last with the weights split into TF32 parts once
+//               per step): the one-seed designs above timed as one program each, hand-offs included.
 
 #include <cooperative_groups.h>
 #include <cuda_runtime.h>
@@ -836,11 +838,9 @@ __global__ void __launch_bounds__(THREADS) cluster_step_presplit(const float* __
     hi_zero[i] = make_uint4(a.hi.x, a.hi.y, b.hi.x, b.hi.y);
     lo_zero[i] = make_uint4(a.lo.x, a.lo.y, b.lo.x, b.lo.y);
   };
-  for (int i = lo_q + threadIdx.x; i < hi_q; i += blockDim.x) {
-    const float4 wq = reinterpret_cast<const float4*>(w0)[i];
-    w4[i] = wq;
-    put_split(i, wq);
-  }
+  for (int i = lo_q + threadIdx.x; i < hi_q; i += blockDim.x) w4[i] = reinterpret_cast<const float4*>(w0)[i];
+  cluster.sync();  // every block of the cluster has started before any writes into block 0's shared memory
+  for (int i = lo_q + threadIdx.x; i < hi_q; i += blockDim.x) put_split(i, w4[i]);
   const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
   const int gl = lane / 4, t = lane % 4;
   const int mtile = warp / NSPLIT, part = warp % NSPLIT;
@@ -956,8 +956,10 @@ static double product_gamma(const char* precision) {
 }
 
 // `steps` Adam steps from w0 with synthetic_gradient, in double with the kernels' float32 constants.
+// m_out, v_out (optional): the moments after the last step.
 static std::vector<double> adam_reference(const std::vector<float>& w0, int steps, double lr, double b1, double b2,
-                                          double eps) {
+                                          double eps, std::vector<double>* m_out = nullptr,
+                                          std::vector<double>* v_out = nullptr) {
   std::vector<double> w(w0.begin(), w0.end()), m(w0.size(), 0.0), v(w0.size(), 0.0);
   for (int s = 0; s < steps; ++s)
     for (size_t i = 0; i < w.size(); ++i) {
@@ -966,6 +968,8 @@ static std::vector<double> adam_reference(const std::vector<float>& w0, int step
       v[i] = b2 * v[i] + (1 - b2) * g * g;
       w[i] -= lr * (m[i] / (1 - std::pow(b1, s + 1))) / (std::sqrt(v[i] / (1 - std::pow(b2, s + 1))) + eps);
     }
+  if (m_out) *m_out = m;
+  if (v_out) *v_out = v;
   return w;
 }
 
@@ -1095,8 +1099,8 @@ static std::vector<float> slot_matrix(const float* src, int slot) {
 }
 
 // A whole-step kernel: seed_steps (cluster 0: one block per seed), grid_step (cluster -1: one seed
-// over a cooperative grid of one block per multiprocessor) or cluster_step (cluster >= 2: one seed
-// over a cluster of that many blocks).
+// over a cooperative grid of one block per multiprocessor) or cluster_step / cluster_step_presplit
+// (cluster >= 2: one seed over a cluster of that many blocks).
 struct SeedVariant {
   const char* kernel;
   int nsplit, threads, cluster;
@@ -1111,12 +1115,13 @@ struct SeedArgs {
   float coupling, lr, b1, b2, eps;
 };
 
-// Dynamic shared memory of a launch: the weights (seed_steps, grid_step's block 0), or block 0's
-// weights and gradient, and at least the pad that keeps a cluster's blocks on multiprocessors of
-// their own (cluster_step).
+// Dynamic shared memory of a launch: the weights (seed_steps), block 0's weights (grid_step) or
+// block 0's weights and gradient, or their TF32 parts (cluster_step, cluster_step_presplit); for
+// one seed over many blocks at least the pad that keeps every block on a multiprocessor of its own.
 static size_t seed_smem(const SeedVariant& sv, int n) {
   const size_t w = size_t(n) * sizeof(float);
-  return sv.cluster >= 2 ? std::max(2 * w, size_t(CLUSTER_PAD_BYTES)) : w;
+  if (sv.cluster == 0) return w;
+  return std::max(sv.cluster >= 2 ? 2 * w : w, size_t(CLUSTER_PAD_BYTES));
 }
 
 static void launch_seed_variant(const SeedVariant& sv, int seeds, int grid_blocks, SeedArgs a) {
@@ -1184,8 +1189,11 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
     CHECK(cudaMemset(d_v, 0, ws.size() * sizeof(float)));
   };
 
-  // Adam with synthetic_gradient (coupling 0) for every seed, in double
-  const std::vector<double> wr = adam_reference(ws, check_steps, lr, b1, b2, eps);
+  // Adam with synthetic_gradient (coupling 0) for every seed, in double; the moments too, which
+  // follow the gradient itself (the update divides its size out, so a wrong gradient hands off
+  // shows in m and v at full size and in w only as its drift)
+  std::vector<double> mr, vr;
+  const std::vector<double> wr = adam_reference(ws, check_steps, lr, b1, b2, eps, &mr, &vr);
 
   const SeedVariant variants[] = {{"seed_steps", 1, 128, 0, seed_steps<1, 128>},
                                   {"seed_steps", 1, 256, 0, seed_steps<1, 256>},
@@ -1199,13 +1207,14 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
                                   {"cluster_step", 2, 512, 4, cluster_step<4, 2, 512>},
                                   {"cluster_step", 2, 256, 8, cluster_step<8, 2, 256>},
                                   {"cluster_step", 2, 512, 8, cluster_step<8, 2, 512>},
+                                  {"cluster_step_presplit", 2, 256, 2, cluster_step_presplit<2, 2, 256>},
                                   {"cluster_step_presplit", 2, 512, 2, cluster_step_presplit<2, 2, 512>},
                                   {"cluster_step_presplit", 2, 256, 4, cluster_step_presplit<4, 2, 256>},
                                   {"cluster_step_presplit", 2, 512, 4, cluster_step_presplit<4, 2, 512>},
                                   {"cluster_step_presplit", 2, 256, 8, cluster_step_presplit<8, 2, 256>},
                                   {"cluster_step_presplit", 2, 512, 8, cluster_step_presplit<8, 2, 512>}};
   const double gamma = product_gamma("tf32x3");
-  std::vector<float> got_out(hs.size()), got_w(ws.size()), w1(ws.size());
+  std::vector<float> got_out(hs.size()), got_w(ws.size()), w1(ws.size()), got_m(ws.size()), got_v(ws.size());
   for (const SeedVariant& sv : variants) {
     if (sv.cluster >= 2 && !clusters) continue;
     const int threads = sv.threads, grid_blocks = prop.multiProcessorCount;
@@ -1215,10 +1224,12 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
     cudaFuncAttributes attr;
     CHECK(cudaFuncGetAttributes(&attr, sv.fn));
     if (smem + attr.sharedSizeBytes > prop.sharedMemPerBlockOptin) {
-      fprintf(stderr, "seed_n=%d: %zu bytes of weights (%s) and the kernel's own %zu exceed a thread block's %zu "
-              "bytes of shared memory; give a smaller --seed-n\n", n, smem, sv.kernel, size_t(attr.sharedSizeBytes),
-              size_t(prop.sharedMemPerBlockOptin));
-      return 2;
+      // this variant's weights do not fit a block's shared memory: said in a line, the others still run
+      printf("{\"skipped\": \"%s\", \"nsplit\": %d, \"threads\": %d, \"n\": %d, \"reason\": \"%zu bytes of "
+             "weights and the kernel's own %zu exceed a thread block's %zu bytes of shared memory\"%s}\n",
+             sv.kernel, sv.nsplit, threads, n, smem, size_t(attr.sharedSizeBytes), size_t(prop.sharedMemPerBlockOptin),
+             seed_variant_fields(sv, false).c_str());
+      continue;
     }
     CHECK(cudaFuncSetAttribute(sv.fn, cudaFuncAttributeMaxDynamicSharedMemorySize, int(smem)));
     int blocks_per_sm = 0;
@@ -1267,13 +1278,19 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
     launch_seed_variant(sv, check_seeds, grid_blocks, args);
     CHECK(cudaGetLastError());
     CHECK(cudaMemcpy(got_w.data(), d_wout, got_w.size() * sizeof(float), cudaMemcpyDeviceToHost));
-    std::string errs, abs_ws, updates;
+    CHECK(cudaMemcpy(got_m.data(), d_m, got_m.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    CHECK(cudaMemcpy(got_v.data(), d_v, got_v.size() * sizeof(float), cudaMemcpyDeviceToHost));
+    std::string errs, abs_ws, updates, m_errs, v_errs;
     for (int i = 0; i < check_seeds; ++i) {
-      double err = 0.0, max_abs_w = 0.0, max_update = 0.0;
+      double err = 0.0, max_abs_w = 0.0, max_update = 0.0, m_err = 0.0, m_max = 0.0, v_err = 0.0, v_max = 0.0;
       for (size_t k = size_t(i) * n; k < size_t(i + 1) * n; ++k) {
         err = max_or_nan(err, std::fabs(double(got_w[k]) - wr[k]));
         max_abs_w = std::max(max_abs_w, std::fabs(wr[k]));
         max_update = std::max(max_update, std::fabs(wr[k] - double(ws[k])));
+        m_err = max_or_nan(m_err, std::fabs(double(got_m[k]) - mr[k]));
+        m_max = std::max(m_max, std::fabs(mr[k]));
+        v_err = max_or_nan(v_err, std::fabs(double(got_v[k]) - vr[k]));
+        v_max = std::max(v_max, std::fabs(vr[k]));
       }
       char buf[64];
       snprintf(buf, sizeof buf, "%s%.3e", i ? ", " : "", err / max_update);
@@ -1282,11 +1299,16 @@ static int seed_benchmark(const std::vector<int>& seed_counts, int n, int loop, 
       abs_ws += buf;
       snprintf(buf, sizeof buf, "%s%.6e", i ? ", " : "", max_update);
       updates += buf;
+      snprintf(buf, sizeof buf, "%s%.3e", i ? ", " : "", m_err / m_max);
+      m_errs += buf;
+      snprintf(buf, sizeof buf, "%s%.3e", i ? ", " : "", v_err / v_max);
+      v_errs += buf;
     }
     printf("{\"check\": \"adam_%s\", \"nsplit\": %d, \"threads\": %d, \"seeds\": %d, \"steps\": %d, "
-           "\"max_err_over_update\": [%s], \"max_abs_w\": [%s], \"max_update\": [%s]%s}\n",
+           "\"max_err_over_update\": [%s], \"max_abs_w\": [%s], \"max_update\": [%s], "
+           "\"m_max_rel_err\": [%s], \"v_max_rel_err\": [%s]%s}\n",
            sv.kernel, sv.nsplit, threads, check_seeds, check_steps, errs.c_str(), abs_ws.c_str(), updates.c_str(),
-           seed_variant_fields(sv, true).c_str());
+           m_errs.c_str(), v_errs.c_str(), seed_variant_fields(sv, true).c_str());
     // timings; each line says whether the timed chains' last outputs are finite (values do not change
     // the tensor cores' speed, but a NaN is reported rather than hidden)
     const std::vector<int> timed_seeds = sv.cluster == 0 ? seed_counts : std::vector<int>{1};

@@ -101,6 +101,19 @@ def adam_bound(steps: int, max_abs_w: float, max_update: float, b2: float = 0.99
     return steps * (2.0 * u * max_abs_w + (8.0 * u + u / (1.0 - b2)) * max_update) / max_update
 
 
+def moment_bound(steps: int) -> float:
+    """Bound on max|m − m_ref| / max|m_ref| (and the same for v) after ``steps`` float32 Adam steps
+    with the synthetic gradient g = 1e-3·|w| + 1e-4 > 0: every term of m = β₁m + (1 − β₁)g and of
+    v = β₂v + (1 − β₂)g² is positive, so nothing cancels and each step adds at most a few
+    roundings (4·2⁻²⁴, with g² and the products) to the relative error already carried (scaled by
+    β ≤ 1); g itself carries 2·2⁻²⁴ of its own rounding and, where it is formed from the weights' TF32
+    parts hi + lo (``cluster_step_presplit``), at most 2⁻²² more, doubled in g². A gradient that is
+    wrong by more than round-off (stale by a step, scaled, from another entry) moves m and v by
+    10⁻³ of their size or more."""
+    u = 2.0 ** -24
+    return (4.0 * steps + 8.0) * u + 2.0 * 2.0 ** -22
+
+
 def adam_float32_error(w0: np.ndarray, steps: int, absolute: bool = True, lr: float = 1e-3, b1: float = 0.9,
                        b2: float = 0.999, eps: float = 1e-8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``steps`` Adam steps in float32 against the same in float64 (NumPy, the kernels' formulas and
@@ -220,15 +233,24 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
             bounds = np.array([adam_bound(r["steps"], a, u) for a, u in zip(abs_ws, updates)])
             worst = int(np.argmax(errs / bounds))
             bound, err = float(bounds[worst]), float(errs[worst])
+            # the moments (whole-step kernels): each seed's m and v against the same bound
+            moments = [np.atleast_1d(np.asarray(r[k], dtype=float)) for k in ("m_max_rel_err", "v_max_rel_err")
+                       if k in r]
+            moments_ok = all(bool(np.all(m <= moment_bound(r["steps"]))) for m in moments)
             if isinstance(r["max_err_over_update"], list):
+                worst_moments = {k: float(np.max(np.asarray(r[k], dtype=float))) for k in ("m_max_rel_err", "v_max_rel_err")
+                                 if k in r}
                 r = {k: val for k, val in r.items() if not isinstance(val, list)}
                 r.update(worst_seed=worst, max_err_over_update=err, max_abs_w=float(abs_ws[worst]),
-                         max_update=float(updates[worst]))
+                         max_update=float(updates[worst]), **worst_moments)
+            if moments:
+                r = {**r, "moment_bound": moment_bound(r["steps"]), "moments_ok": moments_ok}
         else:
             continue
         # a cluster whose blocks shared a multiprocessor is another design than the one named
         shared = r.get("distinct_sms", r.get("cluster", 1)) < r.get("cluster", 1)
-        checks.append({**r, "bound": bound, "blocks_shared_a_multiprocessor": shared, "ok": bool(err <= bound) and not shared})
+        checks.append({**r, "bound": bound, "blocks_shared_a_multiprocessor": shared,
+                       "ok": bool(err <= bound) and not shared and r.get("moments_ok", True)})
         if not checks[-1]["ok"]:
             failed.append(checks[-1])
     chains = [r for r in lines if r.get("kernel", "").startswith("chain")]
@@ -263,7 +285,7 @@ def summarize(lines: list[dict], products: int, run_steps: int = 192_000) -> dic
     return {"device": device, "checks": checks, "failed_checks": failed, "chain_fits": fits,
             "adam_us_per_step": adam, "floor_estimate": estimate,
             "cluster_estimates": cluster_estimates(fits, adam, products), "seed_steps": seeds,
-            "one_seed_steps": one_seed_steps(lines, products)}
+            "one_seed_steps": one_seed_steps(lines, products), "skipped": [r for r in lines if "skipped" in r]}
 
 
 STEP_KERNELS = ("seed_steps", "grid_step", "cluster_step", "cluster_step_presplit")
@@ -294,7 +316,8 @@ def one_seed_steps(lines: list[dict], products: int) -> dict | None:
             designs[design(r)] = {"variant": name(r), "us_per_step": r["us_per_step"],
                                   "adam_alone_us": variants[name(r)].get("adam_alone")}
     best = min(designs, key=lambda d: designs[d]["us_per_step"]) if designs else None
-    return {"products": products, "variants": variants, "designs": designs, "fastest": best}
+    return {"products": products, "variants": variants, "designs": designs, "fastest": best,
+            "chains_not_finite": [f"{name(r)}_{r['products']}products" for r in rows if r.get("out_finite") is False]}
 
 
 def cluster_estimates(fits: dict, adam: dict, products: int) -> dict:
@@ -447,6 +470,9 @@ def main(argv=None) -> int:
             seeds += f", cluster of {c['cluster']}" if "cluster" in c else ""
             what = (f"{c['threads']:4d} threads: max error {c['max_err_over_update']:.2e} of the update "
                     f"(bound {c['bound']:.1e}{seeds})")
+            if "moment_bound" in c:
+                what += (f", moments m {c['m_max_rel_err']:.1e} and v {c['v_max_rel_err']:.1e} of their size "
+                         f"(bound {c['moment_bound']:.1e})")
         shared = " (its blocks shared a multiprocessor)" if c["blocks_shared_a_multiprocessor"] else ""
         print(f"check {c['check']:10s} {what}{shared} {'ok' if c['ok'] else 'FAILED'}", flush=True)
     for name, f in summary["chain_fits"].items():
@@ -479,8 +505,13 @@ def main(argv=None) -> int:
                 print(f"{e['seeds']} seeds, one block each ({b['variant']}, {b['blocks_per_sm']} per multiprocessor), "
                       f"{what} over {args.seed_n} weights: {b['us_per_step']:.1f} µs per step; "
                       f"{e['run_steps']} steps {b['run_s']:.1f} s", flush=True)
+    for r in summary["skipped"]:
+        print(f"skipped {r['skipped']} ({r['threads']} threads): {r['reason']}", flush=True)
     if summary["one_seed_steps"]:
         e = summary["one_seed_steps"]
+        if e["chains_not_finite"]:
+            print(f"one seed: the timed chains ended non-finite in {', '.join(e['chains_not_finite'])} "
+                  "(the timings stand; the values are not checked there)", flush=True)
         for d, b in sorted(e["designs"].items(), key=lambda kv: kv[1]["us_per_step"]):
             alone = f" ({b['adam_alone_us']:.2f} µs without the products)" if b["adam_alone_us"] is not None else ""
             print(f"one seed, whole steps in one launch, {d:22s}: {b['us_per_step']:.2f} µs per step of "

@@ -248,6 +248,61 @@ def test_one_seed_whole_step_kernels_are_summarized_per_design():
               for r in lines]
     failed = kernel_cuda.summarize(shared, products=32)["failed_checks"]
     assert [(c["check"], c["cluster"]) for c in failed] == [("adam_cluster_step", 8)]
+    # the moments: within their bound the check holds; beyond it, or NaN, it fails
+    within = kernel_cuda.moment_bound(5) / 2
+    moments = [dict(r, m_max_rel_err=[within], v_max_rel_err=[within]) if r.get("check") == "adam_grid_step" else r
+               for r in lines]
+    (c,) = [c for c in kernel_cuda.summarize(moments, products=32)["checks"]
+            if c["check"] == "adam_grid_step" and c["threads"] == 256]
+    assert c["ok"] and c["m_max_rel_err"] == within and c["moment_bound"] == kernel_cuda.moment_bound(5)
+    for bad_m in (kernel_cuda.moment_bound(5) * 1.5, float("nan")):
+        bad = [dict(r, m_max_rel_err=[bad_m]) if r.get("check") == "adam_grid_step" and r["threads"] == 512 else r
+               for r in moments]
+        assert [(c["check"], c["threads"]) for c in kernel_cuda.summarize(bad, products=32)["failed_checks"]] == [
+            ("adam_grid_step", 512)]
+    # a variant too large for shared memory is listed, not an error
+    skipped = {"skipped": "cluster_step", "nsplit": 2, "threads": 256, "n": 40000, "reason": "too large"}
+    assert kernel_cuda.summarize(lines + [skipped], products=32)["skipped"] == [skipped]
+
+
+def _tf32(x):
+    """cvt.rna.tf32.f32: float32 rounded to 10 mantissa bits, ties away from zero."""
+    bits = np.asarray(x, np.float32).view(np.uint32)
+    return ((bits + np.uint32(0x1000)) & np.uint32(0xFFFFE000)).view(np.float32)
+
+
+@pytest.mark.parametrize("presplit", [False, True])
+def test_moment_bound_holds_for_float32_adam_and_catches_a_stale_gradient(presplit):
+    """The moments after five float32 Adam steps with the kernels' synthetic gradient (formed from
+    w, or from its TF32 parts hi + lo as cluster_step_presplit forms it) lie within moment_bound of
+    the float64 moments; a gradient one step stale does not."""
+    rng = np.random.default_rng(3)
+    w0 = (np.sqrt(2.0 / (1.0 + 0.2 ** 2) / 64) * rng.standard_normal(22_664)).astype(np.float32)
+    c = lambda x, dt: dt(np.float32(x))  # noqa: E731  (the kernels' float32 constants)
+
+    def run(dtype, stale=False, split=False):
+        w, m, v, g_prev = w0.astype(dtype), np.zeros(w0.shape, dtype), np.zeros(w0.shape, dtype), None
+        for s in range(5):
+            ws = w
+            if split:
+                hi = _tf32(w.astype(np.float32))
+                ws = hi + _tf32(w.astype(np.float32) - hi)
+            g = c(1e-3, dtype) * np.abs(ws).astype(dtype) + c(1e-4, dtype)
+            g, g_prev = (g_prev if stale and g_prev is not None else g), g
+            m = c(0.9, dtype) * m + (dtype(1) - c(0.9, dtype)) * g
+            v = c(0.999, dtype) * v + (dtype(1) - c(0.999, dtype)) * g * g
+            c1 = dtype(1) / (dtype(1) - c(0.9, dtype) ** dtype(s + 1))
+            c2 = dtype(1) / (dtype(1) - c(0.999, dtype) ** dtype(s + 1))
+            w = w - c(1e-3, dtype) * (m * c1) / (np.sqrt(v * c2) + c(1e-8, dtype))
+        return m, v
+
+    m64, v64 = run(np.float64)
+    rel = lambda a, ref: float(np.max(np.abs(a - ref)) / np.max(np.abs(ref)))  # noqa: E731
+    m32, v32 = run(np.float32, split=presplit)
+    bound = kernel_cuda.moment_bound(5)
+    assert rel(m32, m64) <= bound and rel(v32, v64) <= bound
+    m_stale, _ = run(np.float32, stale=True, split=presplit)
+    assert rel(m_stale, m64) > 100 * bound
 
 
 def test_one_seed_check_reports_scalars_and_a_nan_fails_it():
