@@ -477,6 +477,12 @@ struct AdamArgs {
 
 __device__ __forceinline__ float synthetic_gradient(float w) { return 1e-3f * fabsf(w) + 1e-4f; }
 
+// the gradient of four weights in a whole-step kernel: synthetic_gradient plus h, the chain's link
+__device__ __forceinline__ float4 synthetic_quad(float4 w, float h) {
+  return make_float4(synthetic_gradient(w.x) + h, synthetic_gradient(w.y) + h, synthetic_gradient(w.z) + h,
+                     synthetic_gradient(w.w) + h);
+}
+
 __device__ __forceinline__ float correction(float beta, int step) { return 1.f / (1.f - powf(beta, float(step + 1))); }
 
 __device__ __forceinline__ float adam_one(float& w, float& m, float& v, float g, float c1, float c2, const AdamArgs& a) {
@@ -578,6 +584,37 @@ __global__ void cluster_adam(AdamArgs a, int mode) {
 #endif
 }
 
+// A thread's place in a whole-step kernel's chain: its warp, its lane's group g and place t in the
+// group, its warp's row tile and column part, and its first row.
+template <int NSPLIT>
+struct ChainPlace {
+  int lane = threadIdx.x % 32, warp = threadIdx.x / 32, g = lane / 4, t = lane % 4;
+  int mtile = warp / NSPLIT, part = warp % NSPLIT, r0 = 16 * mtile + g;
+};
+
+// B fragments from weights in shared memory in seed_steps' slot order, split into TF32 parts as
+// they are read (the weights change every step): product c uses slot (first_slot + c) % slots.
+struct SlotFetch {
+  const float* w;
+  int first_slot, slots, lane;
+  __device__ __forceinline__ BFragment operator()(int c, int kk, int nn) const {
+    const float2 b =
+        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
+    return split_b(b.x, b.y);
+  }
+};
+
+// A whole-step kernel's chain, run by its chain warps: from the input rows h (each step starts
+// from them, as a minibatch does), `products` dependent products, and warp 0's first entry into
+// `link`, which the step's gradient waits on.
+template <int NSPLIT, class Fetch>
+__device__ __forceinline__ void step_chain(float4 (&frag)[8], TileExchange& exchange, const float* __restrict__ h,
+                                           int r0, int t, int part, int products, const Fetch& fetch, float& link) {
+  load_fragments(frag, h, r0, t);
+  product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
+  if (threadIdx.x == 0) link = frag[0].x;
+}
+
 // ----------------------------------------------------------------------------------------------
 // Many seeds, one thread block each, `steps` whole steps per launch: per step `products` dependent
 // products of the seed's 32 input rows (h0, read again at every step's start) on the tensor cores
@@ -605,25 +642,16 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   float4* m4 = reinterpret_cast<float4*>(m + size_t(seed) * n);
   float4* v4 = reinterpret_cast<float4*>(v + size_t(seed) * n);
   for (int i = threadIdx.x; i < quads; i += blockDim.x) shared_w4[i] = w0_4[i];
-  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
-  const int g = lane / 4, t = lane % 4;
-  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
-  const bool chain_warp = warp < 2 * NSPLIT;
-  const int r0 = 16 * mtile + g;
+  const ChainPlace<NSPLIT> at;
+  const bool chain_warp = at.warp < 2 * NSPLIT;
   const float* h_seed = h0 + size_t(seed) * ROWS * WIDTH;
   float4 frag[8];
   __syncthreads();
-  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
-  const auto fetch = [&](int c, int kk, int nn) {
-    const float2 b =
-        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
-    return split_b(b.x, b.y);
-  };
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, at.mtile, at.lane, 32 * NSPLIT};
+  const SlotFetch fetch{w, first_slot, slots, at.lane};
   for (int s = 0; s < steps; ++s) {
     if (chain_warp) {
-      load_fragments(frag, h_seed, r0, t);  // each step starts from its input rows, as a minibatch does
-      product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
-      if (warp == 0 && lane == 0) link = frag[0].x;
+      step_chain<NSPLIT>(frag, exchange, h_seed, at.r0, at.t, at.part, products, fetch, link);
     }
     __syncthreads();
     const float h = coupling * link;
@@ -631,8 +659,7 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
     const AdamArgs a{nullptr, nullptr, nullptr, nullptr, n, steps, lr, b1, b2, eps};
     for (int i = threadIdx.x; i < quads; i += blockDim.x) {
       float4 wq = shared_w4[i], mq = m4[i], vq = v4[i];
-      const float4 g = make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
-                                   synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h);
+      const float4 g = synthetic_quad(wq, h);
       adam_four(wq, mq, vq, g, c1, c2, a);
       shared_w4[i] = wq;
       m4[i] = mq;
@@ -642,7 +669,7 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   }
   float4* w_out4 = reinterpret_cast<float4*>(w_out + size_t(seed) * n);
   for (int i = threadIdx.x; i < quads; i += blockDim.x) w_out4[i] = shared_w4[i];
-  if (chain_warp && part == 0) store_fragments(frag, out + size_t(seed) * ROWS * WIDTH, r0, t);
+  if (chain_warp && at.part == 0) store_fragments(frag, out + size_t(seed) * ROWS * WIDTH, at.r0, at.t);
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -682,34 +709,24 @@ __global__ void __launch_bounds__(THREADS) grid_step(const float* __restrict__ h
   float4* m4 = reinterpret_cast<float4*>(m);
   float4* v4 = reinterpret_cast<float4*>(v);
   for (int i = lo + threadIdx.x; i < hi; i += blockDim.x) __stcg(w4 + i, reinterpret_cast<const float4*>(w0)[i]);
-  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
-  const int gl = lane / 4, t = lane % 4;
-  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
-  const bool chain_warp = blockIdx.x == 0 && warp < 2 * NSPLIT;
-  const int r0 = 16 * mtile + gl;
+  const ChainPlace<NSPLIT> at;
+  const bool chain_warp = blockIdx.x == 0 && at.warp < 2 * NSPLIT;
   float4 frag[8];
-  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
-  const auto fetch = [&](int c, int kk, int nn) {
-    const float2 b =
-        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
-    return split_b(b.x, b.y);
-  };
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, at.mtile, at.lane, 32 * NSPLIT};
+  const SlotFetch fetch{w, first_slot, slots, at.lane};
   grid.sync();
   for (int s = 0; s < steps; ++s) {
     if (blockIdx.x == 0) {
       for (int i = threadIdx.x; i < quads; i += blockDim.x) shared_w4[i] = __ldcg(w4 + i);
       __syncthreads();
       if (chain_warp) {
-        load_fragments(frag, h0, r0, t);
-        product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
-        if (warp == 0 && lane == 0) link = frag[0].x;
+        step_chain<NSPLIT>(frag, exchange, h0, at.r0, at.t, at.part, products, fetch, link);
       }
       __syncthreads();
       const float h = coupling * link;
       for (int i = threadIdx.x; i < quads; i += blockDim.x) {
         const float4 wq = shared_w4[i];
-        __stcg(g4 + i, make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
-                                   synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h));
+        __stcg(g4 + i, synthetic_quad(wq, h));
       }
     }
     grid.sync();
@@ -724,7 +741,7 @@ __global__ void __launch_bounds__(THREADS) grid_step(const float* __restrict__ h
     }
     grid.sync();
   }
-  if (chain_warp && part == 0) store_fragments(frag, out, r0, t);
+  if (chain_warp && at.part == 0) store_fragments(frag, out, at.r0, at.t);
 }
 
 template <int CLUSTER, int NSPLIT, int THREADS>
@@ -750,34 +767,24 @@ __global__ void __launch_bounds__(THREADS) cluster_step(const float* __restrict_
   float4* m4 = reinterpret_cast<float4*>(m);
   float4* v4 = reinterpret_cast<float4*>(v);
   const float* w = reinterpret_cast<const float*>(w_own);
-  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
-  const int gl = lane / 4, t = lane % 4;
-  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
-  const bool chain_warp = rank == 0 && warp < 2 * NSPLIT;
-  const int r0 = 16 * mtile + gl;
+  const ChainPlace<NSPLIT> at;
+  const bool chain_warp = rank == 0 && at.warp < 2 * NSPLIT;
   if (rank == 0)
     for (int i = threadIdx.x; i < quads; i += blockDim.x) w_own[i] = reinterpret_cast<const float4*>(w0)[i];
   float4 frag[8];
-  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
-  const auto fetch = [&](int c, int kk, int nn) {
-    const float2 b =
-        reinterpret_cast<const float2*>(w + ((first_slot + c) % slots) * WIDTH * WIDTH)[(kk * 8 + nn) * 32 + lane];
-    return split_b(b.x, b.y);
-  };
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, at.mtile, at.lane, 32 * NSPLIT};
+  const SlotFetch fetch{w, first_slot, slots, at.lane};
   cluster.sync();
   for (int s = 0; s < steps; ++s) {
     if (rank == 0) {
       if (chain_warp) {
-        load_fragments(frag, h0, r0, t);
-        product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
-        if (warp == 0 && lane == 0) link = frag[0].x;
+        step_chain<NSPLIT>(frag, exchange, h0, at.r0, at.t, at.part, products, fetch, link);
       }
       __syncthreads();
       const float h = coupling * link;
       for (int i = threadIdx.x; i < quads; i += blockDim.x) {
         const float4 wq = w_own[i];
-        g_own[i] = make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
-                               synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h);
+        g_own[i] = synthetic_quad(wq, h);
       }
     }
     cluster.sync();
@@ -794,7 +801,7 @@ __global__ void __launch_bounds__(THREADS) cluster_step(const float* __restrict_
   }
   if (rank == 0) {
     for (int i = threadIdx.x; i < quads; i += blockDim.x) reinterpret_cast<float4*>(w_out)[i] = w_own[i];
-    if (chain_warp && part == 0) store_fragments(frag, out, r0, t);
+    if (chain_warp && at.part == 0) store_fragments(frag, out, at.r0, at.t);
   }
 #endif
 }
@@ -841,24 +848,19 @@ __global__ void __launch_bounds__(THREADS) cluster_step_presplit(const float* __
   for (int i = lo_q + threadIdx.x; i < hi_q; i += blockDim.x) w4[i] = reinterpret_cast<const float4*>(w0)[i];
   cluster.sync();  // every block of the cluster has started before any writes into block 0's shared memory
   for (int i = lo_q + threadIdx.x; i < hi_q; i += blockDim.x) put_split(i, w4[i]);
-  const int lane = threadIdx.x % 32, warp = threadIdx.x / 32;
-  const int gl = lane / 4, t = lane % 4;
-  const int mtile = warp / NSPLIT, part = warp % NSPLIT;
-  const bool chain_warp = rank == 0 && warp < 2 * NSPLIT;
-  const int r0 = 16 * mtile + gl;
+  const ChainPlace<NSPLIT> at;
+  const bool chain_warp = rank == 0 && at.warp < 2 * NSPLIT;
   float4 frag[8];
-  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, mtile, lane, 32 * NSPLIT};
+  TileExchange exchange{NSPLIT > 1 ? X : nullptr, 0, at.mtile, at.lane, 32 * NSPLIT};
   const auto fetch = [&](int c, int kk, int nn) {
-    const int i = ((first_slot + c) % slots) * (WIDTH * WIDTH / 2) + (kk * 8 + nn) * 32 + lane;
+    const int i = ((first_slot + c) % slots) * (WIDTH * WIDTH / 2) + (kk * 8 + nn) * 32 + at.lane;
     return BFragment{hi2[i], lo2[i]};
   };
   cluster.sync();
   for (int s = 0; s < steps; ++s) {
     if (rank == 0) {
       if (chain_warp) {
-        load_fragments(frag, h0, r0, t);
-        product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
-        if (warp == 0 && lane == 0) link = frag[0].x;
+        step_chain<NSPLIT>(frag, exchange, h0, at.r0, at.t, at.part, products, fetch, link);
       }
       __syncthreads();
       const float h = coupling * link;
@@ -866,8 +868,7 @@ __global__ void __launch_bounds__(THREADS) cluster_step_presplit(const float* __
         const uint4 a = shared_split[i], b = shared_split[quads + i];
         const float4 wq = make_float4(__uint_as_float(a.x) + __uint_as_float(b.x), __uint_as_float(a.y) + __uint_as_float(b.y),
                                       __uint_as_float(a.z) + __uint_as_float(b.z), __uint_as_float(a.w) + __uint_as_float(b.w));
-        __stcg(g4 + i, make_float4(synthetic_gradient(wq.x) + h, synthetic_gradient(wq.y) + h,
-                                   synthetic_gradient(wq.z) + h, synthetic_gradient(wq.w) + h));
+        __stcg(g4 + i, synthetic_quad(wq, h));
       }
     }
     cluster.sync();
@@ -883,7 +884,7 @@ __global__ void __launch_bounds__(THREADS) cluster_step_presplit(const float* __
     }
     cluster.sync();
   }
-  if (chain_warp && part == 0) store_fragments(frag, out, r0, t);
+  if (chain_warp && at.part == 0) store_fragments(frag, out, at.r0, at.t);
 #endif
 }
 
