@@ -609,9 +609,9 @@ struct SlotFetch {
 // `link`, which the step's gradient waits on.
 template <int NSPLIT, class Fetch>
 __device__ __forceinline__ void step_chain(float4 (&frag)[8], TileExchange& exchange, const float* __restrict__ h,
-                                           int r0, int t, int part, int products, const Fetch& fetch, float& link) {
-  load_fragments(frag, h, r0, t);
-  product_chain<3, NSPLIT, 3>(frag, exchange, part, products, fetch);
+                                           const ChainPlace<NSPLIT>& at, int products, const Fetch& fetch, float& link) {
+  load_fragments(frag, h, at.r0, at.t);
+  product_chain<3, NSPLIT, 3>(frag, exchange, at.part, products, fetch);
   if (threadIdx.x == 0) link = frag[0].x;
 }
 
@@ -651,7 +651,7 @@ __global__ void __launch_bounds__(THREADS) seed_steps(const float* __restrict__ 
   const SlotFetch fetch{w, first_slot, slots, at.lane};
   for (int s = 0; s < steps; ++s) {
     if (chain_warp) {
-      step_chain<NSPLIT>(frag, exchange, h_seed, at.r0, at.t, at.part, products, fetch, link);
+      step_chain<NSPLIT>(frag, exchange, h_seed, at, products, fetch, link);
     }
     __syncthreads();
     const float h = coupling * link;
@@ -720,7 +720,7 @@ __global__ void __launch_bounds__(THREADS) grid_step(const float* __restrict__ h
       for (int i = threadIdx.x; i < quads; i += blockDim.x) shared_w4[i] = __ldcg(w4 + i);
       __syncthreads();
       if (chain_warp) {
-        step_chain<NSPLIT>(frag, exchange, h0, at.r0, at.t, at.part, products, fetch, link);
+        step_chain<NSPLIT>(frag, exchange, h0, at, products, fetch, link);
       }
       __syncthreads();
       const float h = coupling * link;
@@ -778,7 +778,7 @@ __global__ void __launch_bounds__(THREADS) cluster_step(const float* __restrict_
   for (int s = 0; s < steps; ++s) {
     if (rank == 0) {
       if (chain_warp) {
-        step_chain<NSPLIT>(frag, exchange, h0, at.r0, at.t, at.part, products, fetch, link);
+        step_chain<NSPLIT>(frag, exchange, h0, at, products, fetch, link);
       }
       __syncthreads();
       const float h = coupling * link;
@@ -860,7 +860,7 @@ __global__ void __launch_bounds__(THREADS) cluster_step_presplit(const float* __
   for (int s = 0; s < steps; ++s) {
     if (rank == 0) {
       if (chain_warp) {
-        step_chain<NSPLIT>(frag, exchange, h0, at.r0, at.t, at.part, products, fetch, link);
+        step_chain<NSPLIT>(frag, exchange, h0, at, products, fetch, link);
       }
       __syncthreads();
       const float h = coupling * link;

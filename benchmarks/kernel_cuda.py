@@ -54,9 +54,11 @@ hand):
   memory; the cluster's barrier between); ``cluster_step_presplit``, the cluster with the weights
   split into their TF32 parts once per step, by the blocks that update them, into block 0's shared
   memory (the float32 weights and the gradient in global memory), so that the chain reads its
-  operands as ``chain_mma`` does instead of splitting them at every product. ``one_seed_steps`` in the JSON: every one-seed design's
-  step measured as one program (with ``seed_steps`` at one seed, the one-block design), the
-  measured floor that the estimates above only add up.
+  operands as ``chain_mma`` does instead of splitting them at every product. ``one_seed_steps`` in
+  the JSON: every one-seed design's step measured as one program (with ``seed_steps`` at one seed,
+  the one-block design), where the estimates above only add up parts. Its products are stand-ins
+  (``--products`` full 64 × 64 products; GMR A,B's step is about 16 full products' worth of
+  tensor-core instructions), so it measures a design, not GMR's step.
 
 Every kernel is checked against a double-precision host computation before it is timed (the
 chains entry by entry against a forward-error bound of the chain, ``reference_chain`` in the
@@ -295,11 +297,9 @@ STEP_KERNELS = ("seed_steps", "grid_step", "cluster_step", "cluster_step_prespli
 def one_seed_steps(lines: list[dict], products: int) -> dict | None:
     """The whole-step kernels at one seed, each one program: ``seed_steps`` (one block), ``grid_step``
     (a cooperative grid), ``cluster_step`` and ``cluster_step_presplit`` (a cluster of 2, 4 or 8
-    blocks). Per variant its µs
-    per step with ``products`` products and with none (Adam and the hand-offs alone); per design
-    (kernel and cluster size) its fastest variant with the products; and the fastest of all, the
-    measured floor of a hand-written one-seed step before the head, the loss, the gather and the
-    statistics."""
+    blocks). Per variant its µs per step with ``products`` stand-in products and with none (Adam and
+    the hand-offs alone); per design (kernel and cluster size) its fastest variant with the
+    products; and the fastest design. No head, loss, gather or statistics."""
     rows = [r for r in lines if r.get("kernel") in STEP_KERNELS and r.get("seeds") == 1]
     if not rows:
         return None

@@ -60,6 +60,8 @@ def positive_int_list(text: str) -> tuple[int, ...]:
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"must be comma-separated positive integers such as 1,256, "
                                          f"got {text!r}") from None
+
+
 _nonnegative_int = _int_at_least(0, "an integer ≥ 0")
 
 
