@@ -170,7 +170,7 @@ def parse_args(argv=None):
     p.add_argument("--algorithm", default="gmr,mdgps", help="comma-separated: gmr, mdgps")
     p.add_argument("--scenario", default="A", help="comma-separated scenarios (data size)")
     p.add_argument("--unroll", default="1", help="comma-separated unroll factors")
-    p.add_argument("--impl", default="packed", help="comma-separated S-step forms: kernel, packed, reference")
+    p.add_argument("--impl", default="packed", help="comma-separated S-step forms: cuda, kernel, packed, reference")
     p.add_argument("--num-warps", default=str(gmr_kernel.NUM_WARPS),
                    help="comma-separated warps per thread block of the kernel form")
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,

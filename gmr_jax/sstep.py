@@ -99,7 +99,7 @@ def normalize_weights(wt, median_floor: float = 1e-2, clip: float = 2.0):
     return jnp.minimum(w, clip * mn) / mn
 
 
-IMPLS = ("packed", "reference", "kernel")
+IMPLS = ("packed", "reference", "kernel", "cuda")
 
 
 def default_impl() -> str:
@@ -147,7 +147,9 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
       key: PRNG key (typed or raw uint32) for the shuffles and the policy's loss.
       cfg: SStepConfig (static).
       impl: "kernel": the policy's GPU kernel (``Policy.kernel``: every step in one launch; Pallas's
-        interpreter off a GPU; falls back to "packed" for a policy without one); "packed": the
+        interpreter off a GPU; falls back to "packed" for a policy without one); "cuda": the
+        policy's hand-written CUDA kernel (``Policy.cuda``: every step in one launch, float32 on an
+        NVIDIA GPU only; falls back to "packed" for a policy without one); "packed": the
         policy's ``training`` form in one loop over all minibatch steps (falls back to
         "reference" for a policy without one); "reference": autodiff of ``policy.loss``
         through ``params.net`` in a loop per epoch; None: ``default_impl()``. Both take the same
@@ -184,8 +186,10 @@ def sstep(policy: Policy, params: PolicyParams, data: SStepData, key, cfg: SStep
     train = data._replace(tgt_prc=wn[:, None, None] * data.tgt_prc, wt=wn, tgt_logdet=logdet)
 
     if impl == "kernel" and policy.kernel is not None:
-        net, (loss, data_loss, aux) = _fit_kernel(policy, params, train, key, cfg)
-    elif impl in ("packed", "kernel") and policy.training is not None:
+        net, (loss, data_loss, aux) = _fit_kernel(policy, policy.kernel, params, train, key, cfg)
+    elif impl == "cuda" and policy.cuda is not None:
+        net, (loss, data_loss, aux) = _fit_kernel(policy, policy.cuda, params, train, key, cfg)
+    elif impl in ("packed", "kernel", "cuda") and policy.training is not None:
         net, (loss, data_loss, aux) = _fit_packed(policy.training, params, train, key, cfg)
     else:
         net, (loss, data_loss, aux) = _fit_reference(policy, params, train, key, cfg)
@@ -368,12 +372,12 @@ def _fit_packed(form: TrainingForm, params: PolicyParams, train: SStepData, key,
     return form.unpack(params, expand(w)), _returned_epochs(cfg, means)
 
 
-def _fit_kernel(policy: Policy, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
-    """The Adam loop as the policy's GPU kernel (``Policy.kernel``), on ``_schedule``'s steps.
-    Returns (net, (loss [E], data_loss [E], aux)), E as ``_fit_packed``'s."""
+def _fit_kernel(policy: Policy, kernel, params: PolicyParams, train: SStepData, key, cfg: SStepConfig):
+    """The Adam loop as one of the policy's GPU kernels (``Policy.kernel`` or ``Policy.cuda``), on
+    ``_schedule``'s steps. Returns (net, (loss [E], data_loss [E], aux)), E as ``_fit_packed``'s."""
     dtype = params.norm.scale.dtype
     idx, noise, c1, c2 = _schedule(train, key, cfg, policy.training.noise, dtype)
-    net, per_step = policy.kernel(params, train, idx, noise, c1, c2, cfg)
+    net, per_step = kernel(params, train, idx, noise, c1, c2, cfg)
     return net, _returned_epochs(cfg, _epoch_means(cfg.epochs, per_step))
 
 

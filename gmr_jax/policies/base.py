@@ -164,6 +164,8 @@ class Policy(NamedTuple):
         [steps] (Adam's bias corrections), cfg: SStepConfig) -> (net, (total, value, aux)) with
         [steps] per-step values; the same steps as ``training``'s loop (needs ``training`` for
         its noise).
+      cuda: optional, the same as ``kernel`` written in CUDA (``impl="cuda"``; float32 on an NVIDIA
+        GPU).
     """
 
     init: Callable[..., PolicyParams]
@@ -173,6 +175,7 @@ class Policy(NamedTuple):
     finalize: Callable[[PolicyParams, SStepData], PolicyParams]
     training: TrainingForm | None = None
     kernel: Callable | None = None
+    cuda: Callable | None = None
 
 
 def default_float():

@@ -72,7 +72,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gmr_jax.config import GMRConfig
-from gmr_jax.policies import gmr_kernel
+from gmr_jax.policies import gmr_cuda, gmr_kernel
 from gmr_jax.policies.base import (Normalization, Policy, PolicyParams, SStepData, TrainingForm,
                                    column_blocks, default_float, dense_chain, dense_entries, dense_layout,
                                    dense_stack, dense_value_and_grad, flax_dense_layers, flax_dense_params,
@@ -434,14 +434,17 @@ def make_gmr(cfg: GMRConfig = GMRConfig()) -> GMR:
         """x [dX] -> (K [dU, dX], k [dU]): exact first-order expansion of u(x) = Ψ_K(x) x + Ψ_k(x)."""
         return linearize_mean(reflexes.mean, params, x)
 
-    def kernel(params: PolicyParams, train: SStepData, idx, noise, c1, c2, scfg):
-        """Policy.kernel: the S-step's Adam loop as one GPU kernel (``gmr_kernel``)."""
-        net, stats = gmr_kernel.fit(cfg, scfg, params, terms.loss_rows(params, train), idx, noise, c1, c2)
-        per_step = dict(zip(gmr_kernel.STATS, stats.T))
-        return net, (per_step.pop("total"), per_step.pop("value"), per_step)
+    def kernel_form(fit):
+        def kernel(params: PolicyParams, train: SStepData, idx, noise, c1, c2, scfg):
+            """Policy.kernel / Policy.cuda: the S-step's Adam loop as one GPU kernel (``fit``)."""
+            net, stats = fit(cfg, scfg, params, terms.loss_rows(params, train), idx, noise, c1, c2)
+            per_step = dict(zip(gmr_kernel.STATS, stats.T))
+            return net, (per_step.pop("total"), per_step.pop("value"), per_step)
+        return kernel
 
     policy = Policy(init=net.init, mean=reflexes.mean, covariance=reflexes.covariance, loss=terms.loss,
-                    finalize=finalize, training=training, kernel=kernel)
+                    finalize=finalize, training=training, kernel=kernel_form(gmr_kernel.fit),
+                    cuda=kernel_form(gmr_cuda.fit))
     return GMR(policy=policy, encode=net.encode, decode=net.decode, translate=reflexes.translate,
                reflex=reflexes.reflex, action=reflexes.action, linearize=linearize)
 

@@ -1,0 +1,621 @@
+// GMR's S-step as one hand-written CUDA kernel: every Adam step of an S-step in one launch,
+// one thread block per seed, called from JAX through the XLA FFI (gmr_jax/policies/gmr_cuda.py).
+//
+// The kernel runs a per-step *program* that the Python side builds from the layout (gmr_cuda.py
+// ``program``): a list of phases, each a list of tasks whose items the block's threads share,
+// with a barrier after each phase. The program names the layers (their place in the compact θ
+// and in shared memory) and the activation buffers (their place in shared memory), so the
+// kernel holds no knowledge of the networks' depths or widths. Task kinds:
+//
+//   GATHER       the minibatch's rows: their indices, weights and encoder inputs; g_z ← 0
+//   FWD          out = act(A·W + b) (act: leaky ReLU, or none)
+//   INGRAD       out (=, or +=) mask(D1·W1ᵀ [+ D2·W2ᵀ]), mask: where(h ≥ 0, g, slope·g) of the
+//                layer below (the leaky ReLU's derivative, read off its output: slope > 0)
+//   WGRAD        the weight gradient hᵀD and bias gradient ΣD of a layer, each entry's Adam step
+//                at once (θ in shared memory, Adam's moments in global memory)
+//   LATENT       μ_z, log σ²_z, z = μ + σ·ε and the KL term per entry
+//   HEAD1..4     the head (gmr.fused_head): Ψ_Σ's factor L, Δu, ΔK, the products with Σ and P,
+//                the cotangents of the gain and Cholesky outputs and of x̂, and each row's terms
+//   LATENT_GRAD  the cotangents of μ_z and log σ²_z from g_z and the KL term
+//
+// The arithmetic is that of gmr_kernel.py's Pallas kernel (the packed form's closed forms),
+// in float32 on the CUDA cores (fused multiply-adds, no TF32): each product's sum runs in its
+// own order, so the results agree with the packed form to round-off.
+#include <cuda_runtime.h>
+
+#include <cmath>
+#include <cstdint>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+constexpr int NT = 512;   // threads per block
+constexpr int RG = 4;     // rows per item of FWD and INGRAD
+constexpr int KG = 4;     // weight rows per item of WGRAD
+constexpr int NSTATS = 8; // total, value, action, action_mse, cov, gain, latent_kl, recon
+
+enum TaskKind { GATHER = 0, FWD, INGRAD, WGRAD, LATENT, HEAD1, HEAD2, HEAD3, HEAD4, LATENT_GRAD };
+
+// The fixed buffers (gmr_cuda.py FIXED_BUFFERS names them in this order).
+enum FixedBuffer {
+  B_ROWS = 0, B_WROW, B_XIN, B_MU, B_LV, B_Z, B_KLT, B_XHAT, B_GOUT, B_COUT, B_DG, B_DC, B_DXH, B_GZ,
+  B_GMU, B_GLV, B_DK, B_DKS, B_PDKS, B_L, B_V, B_T, B_PL, B_TS, B_SRN, B_RN, B_DU, B_PDU, B_TR, B_LDT,
+  B_ROWSTAT, B_RED, N_FIXED
+};
+
+// The program's header (ints); gmr_cuda.py HEADER names them in this order.
+enum Header {
+  H_DX = 0, H_DU, H_X, H_U, H_LAT, H_BS, H_B, H_N_THETA, H_STATS_FROM, H_N_LAYERS, H_N_BUFS, H_N_TASKS,
+  H_N_PHASES, H_LAYERS, H_BUFS, H_TASKS, H_PHASES, H_THETA_SMEM, H_L_GAIN, H_L_CHOL, H_L_XHAT, H_PROGRAM,
+  H_SIZE
+};
+constexpr int LAYER_INTS = 5;  // compact offset, shared-memory offset, K, N, row stride S
+constexpr int BUF_INTS = 2;    // shared-memory offset, leading dimension
+constexpr int TASK_INTS = 9;   // kind, items, args[7]
+constexpr int PHASE_INTS = 3;  // first task, tasks, items
+
+// The float parameters (gmr_cuda.py FLOATS names them in this order).
+enum Floats {
+  F_SLOPE = 0, F_ALPHA, F_S, F_C, F_HALF_LOG_INIT_VAR, F_RHO, F_LR, F_B1, F_ONE_MINUS_B1, F_B2,
+  F_ONE_MINUS_B2, F_EPS, F_WD, F_DU, N_FLOATS
+};
+
+struct Args {
+  const int32_t* idx;     // [steps, bs]
+  const float* eps;       // [steps, bs, lat]
+  const float* c1;        // [steps]
+  const float* c2;        // [steps]
+  const float* xn;        // [B, X]
+  const float* xe;        // [B, X]
+  const float* sig;       // [B, X, X]
+  const float* tgt;       // [B, U]
+  const float* prc;       // [B, U, U]
+  const float* Kp;        // [B, U, X]
+  const float* wt;        // [B]
+  const float* logdet;    // [B]
+  const float* scale;     // [X]
+  const float* theta0;    // [n]
+  const int32_t* program; // [H_PROGRAM ints]
+  const float* floats;    // [N_FLOATS]
+  float* theta;           // [n]
+  float* m;               // [n]
+  float* v;               // [n]
+  float* stats;           // [steps, NSTATS]
+  int steps;
+  // per-seed strides (elements)
+  long long s_idx, s_eps, s_steps, s_xn, s_sig, s_u, s_uu, s_ux, s_b, s_x, s_theta, s_program, s_floats, s_stats;
+};
+
+struct Ctx {
+  const int* prog;      // the program in shared memory
+  float* sm;            // shared memory (floats)
+  const float* f;       // float parameters
+  Args a;
+  int step;
+  float c1, c2;
+  float l2;             // this thread's Σθ² of the step's updated entries (before the update)
+};
+
+__device__ __forceinline__ float* buf(const Ctx& c, int id) { return c.sm + c.prog[c.prog[H_BUFS] + id * BUF_INTS]; }
+__device__ __forceinline__ int ld(const Ctx& c, int id) { return c.prog[c.prog[H_BUFS] + id * BUF_INTS + 1]; }
+__device__ __forceinline__ const int* layer(const Ctx& c, int l) { return c.prog + c.prog[H_LAYERS] + l * LAYER_INTS; }
+__device__ __forceinline__ int row_of(const Ctx& c, int r) { return __float_as_int(buf(c, B_ROWS)[r]); }
+
+__device__ __forceinline__ float leaky(float x, float slope) { return x >= 0.f ? x : slope * x; }
+
+// ---------------------------------------------------------------- the networks' tasks
+
+// out[r, n] = act(Σ_k A[r, k] W[k, n] + b[n]) for RG rows r of one column n.
+__device__ void fwd_item(const Ctx& c, const int* t, int i) {
+  const int* L = layer(c, t[0]);
+  const int K = L[2], N = L[3], S = L[4];
+  const float* W = c.sm + L[1];
+  const float* A = buf(c, t[1]);
+  const int lda = ld(c, t[1]);
+  float* out = buf(c, t[2]);
+  const int ldo = ld(c, t[2]);
+  const int bs = c.prog[H_BS];
+  const int n = i % N, r0 = (i / N) * RG;
+  float acc[RG];
+#pragma unroll
+  for (int j = 0; j < RG; ++j) acc[j] = 0.f;
+  for (int k = 0; k < K; ++k) {
+    const float w = W[k * S + n];
+#pragma unroll
+    for (int j = 0; j < RG; ++j) acc[j] = fmaf(A[min(r0 + j, bs - 1) * lda + k], w, acc[j]);
+  }
+  const float b = W[K * S + n];
+#pragma unroll
+  for (int j = 0; j < RG; ++j) {
+    if (r0 + j < bs) {
+      const float pre = acc[j] + b;
+      out[(r0 + j) * ldo + n] = t[3] ? leaky(pre, c.f[F_SLOPE]) : pre;
+    }
+  }
+}
+
+// Σ_n D[r, n] W[k, n] for RG rows r of one input k, added into acc.
+__device__ __forceinline__ void transposed_product(const Ctx& c, int l, int d, int k, int r0, float (&acc)[RG]) {
+  const int* L = layer(c, l);
+  const int N = L[3], S = L[4];
+  const float* W = c.sm + L[1] + k * S;
+  const float* D = buf(c, d);
+  const int ldd = ld(c, d);
+  const int bs = c.prog[H_BS];
+  for (int n = 0; n < N; ++n) {
+    const float w = W[n];
+#pragma unroll
+    for (int j = 0; j < RG; ++j) acc[j] = fmaf(D[min(r0 + j, bs - 1) * ldd + n], w, acc[j]);
+  }
+}
+
+// out[r, k] (=, or += with t[6]) mask(Σ_n D1[r, n] W1[k, n] (+ Σ_n D2[r, n] W2[k, n])).
+// t: layer1, D1, layer2 (-1: none), D2, out, mask buffer (-1: none), accumulate.
+__device__ void ingrad_item(const Ctx& c, const int* t, int i) {
+  const int K = layer(c, t[0])[2];
+  const int k = i % K, r0 = (i / K) * RG;
+  const int bs = c.prog[H_BS];
+  float acc[RG], acc2[RG];
+#pragma unroll
+  for (int j = 0; j < RG; ++j) acc[j] = acc2[j] = 0.f;
+  transposed_product(c, t[0], t[1], k, r0, acc);
+  if (t[2] >= 0) transposed_product(c, t[2], t[3], k, r0, acc2);
+  float* out = buf(c, t[4]);
+  const int ldo = ld(c, t[4]);
+  const float slope = c.f[F_SLOPE];
+#pragma unroll
+  for (int j = 0; j < RG; ++j) {
+    const int r = r0 + j;
+    if (r >= bs) continue;
+    float g = t[2] >= 0 ? acc[j] + acc2[j] : acc[j];
+    if (t[6]) g = out[r * ldo + k] + g;
+    if (t[5] >= 0) g = buf(c, t[5])[r * ld(c, t[5]) + k] >= 0.f ? g : slope * g;
+    out[r * ldo + k] = g;
+  }
+}
+
+// One step of optax.adam on θ (shared memory) and its moments (global memory), operation for
+// operation as gmr_jax.adam.adam_update, on the gradient g + β·2θ.
+__device__ __forceinline__ void adam(Ctx& c, float* theta, long long gi, float g) {
+  const float* f = c.f;
+  const float th = *theta;
+  c.l2 = fmaf(th, th, c.l2);
+  g = g + f[F_WD] * (2.f * th);
+  const float m = f[F_ONE_MINUS_B1] * g + f[F_B1] * c.a.m[gi];
+  const float v = f[F_ONE_MINUS_B2] * (g * g) + f[F_B2] * c.a.v[gi];
+  c.a.m[gi] = m;
+  c.a.v[gi] = v;
+  *theta = th + -f[F_LR] * ((m / c.c1) / (sqrtf(v / c.c2 + 0.f) + f[F_EPS]));
+}
+
+// The gradients of KG weight rows k (row K: the bias) of one column n, and their Adam steps.
+// t: layer, h (the layer's input), D (the cotangent of its output).
+__device__ void wgrad_item(Ctx& c, const int* t, int i) {
+  const int* L = layer(c, t[0]);
+  const int K = L[2], N = L[3], S = L[4];
+  const int n = i % N, k0 = (i / N) * KG;
+  const float* h = buf(c, t[1]);
+  const int ldh = ld(c, t[1]);
+  const float* D = buf(c, t[2]);
+  const int ldd = ld(c, t[2]);
+  const int bs = c.prog[H_BS];
+  float acc[KG];
+#pragma unroll
+  for (int q = 0; q < KG; ++q) acc[q] = 0.f;
+  for (int r = 0; r < bs; ++r) {
+    const float d = D[r * ldd + n];
+#pragma unroll
+    for (int q = 0; q < KG; ++q) {
+      const int k = k0 + q;
+      acc[q] = k < K ? fmaf(h[r * ldh + k], d, acc[q]) : (k == K ? acc[q] + d : acc[q]);
+    }
+  }
+#pragma unroll
+  for (int q = 0; q < KG; ++q) {
+    const int k = k0 + q;
+    if (k <= K) adam(c, c.sm + L[1] + k * S + n, (long long)L[0] + (long long)k * N + n, acc[q]);
+  }
+}
+
+// ---------------------------------------------------------------- the latent state
+
+// t: μ layer, log σ² layer, input buffer.  Items (r, j): μ, log σ², z, the KL term.
+__device__ void latent_item(const Ctx& c, const int* t, int i) {
+  const int lat = c.prog[H_LAT];
+  const int r = i / lat, j = i % lat;
+  const int* Lm = layer(c, t[0]);
+  const int* Lv = layer(c, t[1]);
+  const int K = Lm[2];
+  const float* h = buf(c, t[2]) + r * ld(c, t[2]);
+  const float* Wm = c.sm + Lm[1];
+  const float* Wv = c.sm + Lv[1];
+  float mu = 0.f, lv = 0.f;
+  for (int k = 0; k < K; ++k) {
+    mu = fmaf(h[k], Wm[k * Lm[4] + j], mu);
+    lv = fmaf(h[k], Wv[k * Lv[4] + j], lv);
+  }
+  mu = mu + Wm[K * Lm[4] + j];
+  lv = lv + Wv[K * Lv[4] + j];
+  const float sd = expf(0.5f * lv), var = expf(lv);
+  const float e = c.a.eps[((long long)c.step * c.prog[H_BS] + r) * lat + j];
+  buf(c, B_MU)[r * lat + j] = mu;
+  buf(c, B_LV)[r * lat + j] = lv;
+  buf(c, B_Z)[r * lat + j] = mu + sd * e;
+  buf(c, B_KLT)[r * lat + j] = mu * mu + var - lv - 1.f;
+}
+
+__device__ void latent_grad_item(const Ctx& c, int i) {
+  const int lat = c.prog[H_LAT];
+  const int r = i / lat, j = i % lat;
+  const float w = buf(c, B_WROW)[r];
+  const float ct = c.f[F_ALPHA] * 0.5f * c.f[F_RHO] * w;
+  const float mu = buf(c, B_MU)[r * lat + j], lv = buf(c, B_LV)[r * lat + j];
+  const float gz = buf(c, B_GZ)[r * lat + j];
+  const float e = c.a.eps[((long long)c.step * c.prog[H_BS] + r) * lat + j];
+  buf(c, B_GMU)[r * lat + j] = gz + ct * (2.f * mu);
+  buf(c, B_GLV)[r * lat + j] = gz * e * (0.5f * expf(0.5f * lv)) + ct * (expf(lv) - 1.f);
+}
+
+__device__ void gather_item(const Ctx& c, int i) {
+  const int bs = c.prog[H_BS], dX = c.prog[H_DX], X = c.prog[H_X], lat = c.prog[H_LAT];
+  if (i < bs * dX) {
+    const int r = i / dX, j = i % dX;
+    const int row = c.a.idx[(long long)c.step * bs + r];
+    buf(c, B_XIN)[r * dX + j] = c.a.xn[(long long)row * X + j];
+    if (j == 0) {
+      buf(c, B_ROWS)[r] = __int_as_float(row);
+      buf(c, B_WROW)[r] = c.a.wt[row];
+    }
+  } else {
+    buf(c, B_GZ)[i - bs * dX] = 0.f;  // [bs, lat]
+    (void)lat;
+  }
+}
+
+// ---------------------------------------------------------------- the head (gmr.fused_head)
+
+// Items (r, i), i < dU: row i of L and V, tanh of the diagonal, Δu_i, log σ_i − log‖V_i‖;
+// then items (r, i, j), j < dX: ΔK = G·diag(scale) − K.
+__device__ void head1_item(const Ctx& c, int i) {
+  const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
+  const float* f = c.f;
+  if (i < bs * dU) {
+    const int r = i / dU, a = i % dU, row = row_of(c, r);
+    const float* C = buf(c, B_COUT) + r * ld(c, B_COUT);
+    const float* G = buf(c, B_GOUT) + r * ld(c, B_GOUT);
+    const float tt = tanhf(C[a * U + a] / f[F_S]);
+    const float log_sigma = f[F_HALF_LOG_INIT_VAR] + f[F_S] * tt;
+    float* V = buf(c, B_V) + r * dU * dU + a * dU;
+    float* T = buf(c, B_T) + r * dU * dU + a * dU;
+    float ss = 0.f;
+    for (int b = 0; b < dU; ++b) {
+      const float Tb = tanhf(C[a * U + b] / f[F_C]);
+      const float Vb = (b < a ? f[F_C] * Tb : 0.f) + (b == a ? 1.f : 0.f);
+      T[b] = Tb;
+      V[b] = Vb;
+      ss = fmaf(Vb, Vb, ss);
+    }
+    const float rn = sqrtf(ss), sigma = expf(log_sigma), srn = sigma / rn;
+    float* Lr = buf(c, B_L) + r * dU * dU + a * dU;
+    for (int b = 0; b < dU; ++b) Lr[b] = srn * V[b];
+    buf(c, B_TS)[r * dU + a] = tt;
+    buf(c, B_SRN)[r * dU + a] = srn;
+    buf(c, B_RN)[r * dU + a] = rn;
+    buf(c, B_LDT)[r * dU + a] = log_sigma - logf(rn);
+    const float* xe = c.a.xe + (long long)row * X;
+    float du = 0.f;
+    for (int j = 0; j <= dX; ++j) du = fmaf(G[a * X + j], xe[j], du);
+    buf(c, B_DU)[r * dU + a] = du - c.a.tgt[(long long)row * U + a];
+  } else {
+    i -= bs * dU;
+    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
+    const float* G = buf(c, B_GOUT) + r * ld(c, B_GOUT);
+    buf(c, B_DK)[r * dU * dX + a * dX + j] = G[a * X + j] * c.a.scale[j] - c.a.Kp[((long long)row * U + a) * X + j];
+  }
+}
+
+// ΔK Σ (r, i, j < dX); P Δu (r, i); P L (r, i, j < dU).
+__device__ void head2_item(const Ctx& c, int i) {
+  const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
+  if (i < bs * dU * dX) {
+    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
+    const float* dK = buf(c, B_DK) + r * dU * dX + a * dX;
+    const float* sg = c.a.sig + ((long long)row * X + j) * X;
+    float s = 0.f;
+    for (int k = 0; k < dX; ++k) s = fmaf(dK[k], sg[k], s);
+    buf(c, B_DKS)[r * dU * dX + a * dX + j] = s;
+    return;
+  }
+  i -= bs * dU * dX;
+  if (i < bs * dU) {
+    const int r = i / dU, a = i % dU, row = row_of(c, r);
+    const float* P = c.a.prc + ((long long)row * U + a) * U;
+    const float* du = buf(c, B_DU) + r * dU;
+    float s = 0.f;
+    for (int b = 0; b < dU; ++b) s = fmaf(P[b], du[b], s);
+    buf(c, B_PDU)[r * dU + a] = s;
+    return;
+  }
+  i -= bs * dU;
+  const int r = i / (dU * dU), a = (i / dU) % dU, b = i % dU, row = row_of(c, r);
+  const float* P = c.a.prc + ((long long)row * U + a) * U;
+  const float* L = buf(c, B_L) + r * dU * dU;
+  float s = 0.f;
+  for (int k = 0; k < dU; ++k) s = fmaf(P[k], L[k * dU + b], s);
+  buf(c, B_PL)[r * dU * dU + a * dU + b] = s;
+}
+
+// P ΔK Σ (r, i, j < dX); the rows of tr(Lᵀ P L) (r, i).
+__device__ void head3_item(const Ctx& c, int i) {
+  const int dU = c.prog[H_DU], dX = c.prog[H_DX], U = c.prog[H_U], bs = c.prog[H_BS];
+  if (i < bs * dU * dX) {
+    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
+    const float* P = c.a.prc + ((long long)row * U + a) * U;
+    const float* dKS = buf(c, B_DKS) + r * dU * dX;
+    float s = 0.f;
+    for (int k = 0; k < dU; ++k) s = fmaf(P[k], dKS[k * dX + j], s);
+    buf(c, B_PDKS)[r * dU * dX + a * dX + j] = s;
+    return;
+  }
+  i -= bs * dU * dX;
+  const int r = i / dU, a = i % dU;
+  const float* L = buf(c, B_L) + r * dU * dU + a * dU;
+  const float* PL = buf(c, B_PL) + r * dU * dU + a * dU;
+  float s = 0.f;
+  for (int b = 0; b < dU; ++b) s = fmaf(L[b], PL[b], s);
+  buf(c, B_TR)[r * dU + a] = s;
+}
+
+// The cotangents of the gain output (r, n < NG), the Cholesky output (r, n < NC) and x̂
+// (r, j < dX); each row's loss terms (r).
+__device__ void head4_item(const Ctx& c, int i) {
+  const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
+  const int NG = layer(c, c.prog[H_L_GAIN])[3], NC = layer(c, c.prog[H_L_CHOL])[3];
+  const float* f = c.f;
+  const float rho = f[F_RHO];
+  if (i < bs * NG) {
+    const int r = i / NG, n = i % NG, a = n / X, j = n % X, row = row_of(c, r);
+    const float xe = c.a.xe[(long long)row * X + j];
+    float g = (rho * buf(c, B_PDU)[r * dU + a]) * xe;
+    if (j < dX) g = g + (rho * buf(c, B_PDKS)[r * dU * dX + a * dX + j]) * c.a.scale[j];
+    buf(c, B_DG)[r * ld(c, B_DG) + n] = g;
+    return;
+  }
+  i -= bs * NG;
+  if (i < bs * NC) {
+    const int r = i / NC, n = i % NC, a = n / U, b = n % U;
+    float g = 0.f;
+    if (a < dU && b <= a) {
+      const float q = rho * buf(c, B_TR)[r * dU + a] + (-rho) * buf(c, B_WROW)[r];
+      if (b < a) {
+        const int e = r * dU * dU + a * dU + b;
+        const float rn = buf(c, B_RN)[r * dU + a];
+        const float gV = buf(c, B_SRN)[r * dU + a] * (rho * buf(c, B_PL)[e]) - (q / (rn * rn)) * buf(c, B_V)[e];
+        const float T = buf(c, B_T)[e];
+        g = gV * (1.f - T * T);
+      } else {
+        const float tt = buf(c, B_TS)[r * dU + a];
+        g = q * (1.f - tt * tt);
+      }
+    }
+    buf(c, B_DC)[r * ld(c, B_DC) + n] = g;
+    return;
+  }
+  i -= bs * NC;
+  if (i < bs * dX) {
+    const int r = i / dX, j = i % dX;
+    const float w = buf(c, B_WROW)[r];
+    const float diff = buf(c, B_XIN)[r * dX + j] - buf(c, B_XHAT)[r * dX + j];
+    buf(c, B_DXH)[r * dX + j] = (-2.f * rho * w) * diff;
+    return;
+  }
+  // the row's loss terms, in STATS order after total and value:
+  // action, action_mse, cov, gain, latent_kl, recon
+  const int r = i - bs * dX, row = row_of(c, r), lat = c.prog[H_LAT];
+  const float w = buf(c, B_WROW)[r];
+  const float* du = buf(c, B_DU) + r * dU;
+  const float* pdu = buf(c, B_PDU) + r * dU;
+  float action = 0.f, mse = 0.f, tr = 0.f, ldt = 0.f;
+  for (int a = 0; a < dU; ++a) {
+    action = fmaf(du[a], pdu[a], action);
+    mse = fmaf(du[a], du[a], mse);
+    tr = tr + buf(c, B_TR)[r * dU + a];
+    ldt = ldt + buf(c, B_LDT)[r * dU + a];
+  }
+  float gain = 0.f;
+  const float* dK = buf(c, B_DK) + r * dU * dX;
+  const float* pdks = buf(c, B_PDKS) + r * dU * dX;
+  for (int e = 0; e < dU * dX; ++e) gain = fmaf(dK[e], pdks[e], gain);
+  float recon = 0.f;
+  for (int j = 0; j < dX; ++j) {
+    const float diff = buf(c, B_XIN)[r * dX + j] - buf(c, B_XHAT)[r * dX + j];
+    recon = fmaf(diff, diff, recon);
+  }
+  float kl = 0.f;
+  for (int j = 0; j < lat; ++j) kl = kl + buf(c, B_KLT)[r * lat + j];
+  float* out = buf(c, B_ROWSTAT) + r * (NSTATS - 2);
+  out[0] = action;
+  out[1] = mse / f[F_DU];
+  out[2] = tr - w * (2.f * ldt + f[F_DU] + c.a.logdet[row]);
+  out[3] = gain;
+  out[4] = w * 0.5f * kl;
+  out[5] = w * recon;
+}
+
+// ---------------------------------------------------------------- the kernel
+
+__device__ __forceinline__ void run_item(Ctx& c, const int* t, int i) {
+  switch (t[0]) {
+    case GATHER: gather_item(c, i); break;
+    case FWD: fwd_item(c, t + 2, i); break;
+    case INGRAD: ingrad_item(c, t + 2, i); break;
+    case WGRAD: wgrad_item(c, t + 2, i); break;
+    case LATENT: latent_item(c, t + 2, i); break;
+    case HEAD1: head1_item(c, i); break;
+    case HEAD2: head2_item(c, i); break;
+    case HEAD3: head3_item(c, i); break;
+    case HEAD4: head4_item(c, i); break;
+    case LATENT_GRAD: latent_grad_item(c, i); break;
+  }
+}
+
+__device__ float block_sum(float x, float* red) {
+  for (int o = 16; o > 0; o >>= 1) x += __shfl_xor_sync(0xffffffffu, x, o);
+  const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
+  if (lane == 0) red[warp] = x;
+  __syncthreads();
+  float s = 0.f;
+  if (warp == 0) {
+    s = lane < NT / 32 ? red[lane] : 0.f;
+    for (int o = 16; o > 0; o >>= 1) s += __shfl_xor_sync(0xffffffffu, s, o);
+  }
+  return s;  // the sum in thread 0 (warp 0)
+}
+
+__global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
+  extern __shared__ float sm[];
+  const int seed = blockIdx.x;
+  a.idx += seed * a.s_idx; a.eps += seed * a.s_eps; a.c1 += seed * a.s_steps; a.c2 += seed * a.s_steps;
+  a.xn += seed * a.s_xn; a.xe += seed * a.s_xn; a.sig += seed * a.s_sig; a.tgt += seed * a.s_u;
+  a.prc += seed * a.s_uu; a.Kp += seed * a.s_ux; a.wt += seed * a.s_b; a.logdet += seed * a.s_b;
+  a.scale += seed * a.s_x; a.theta0 += seed * a.s_theta; a.program += seed * a.s_program;
+  a.floats += seed * a.s_floats; a.theta += seed * a.s_theta; a.m += seed * a.s_theta;
+  a.v += seed * a.s_theta; a.stats += seed * a.s_stats;
+
+  int* prog = reinterpret_cast<int*>(sm);
+  const int np = a.program[H_PROGRAM];
+  for (int i = threadIdx.x; i < np; i += NT) prog[i] = a.program[i];
+  __syncthreads();
+  // θ into shared memory (rows of stride S), Adam's moments to zero
+  const int nl = prog[H_N_LAYERS];
+  for (int l = 0; l < nl; ++l) {
+    const int* L = prog + prog[H_LAYERS] + l * LAYER_INTS;
+    const int K1 = L[2] + 1, N = L[3], S = L[4];
+    for (int e = threadIdx.x; e < K1 * N; e += NT) sm[L[1] + (e / N) * S + e % N] = a.theta0[L[0] + e];
+  }
+  for (int e = threadIdx.x; e < prog[H_N_THETA]; e += NT) { a.m[e] = 0.f; a.v[e] = 0.f; }
+  __syncthreads();
+
+  Ctx c{prog, sm, a.floats, a, 0, 0.f, 0.f, 0.f};
+  float* red = buf(c, B_RED);
+  const int* phases = prog + prog[H_PHASES];
+  const int* tasks = prog + prog[H_TASKS];
+  for (int step = 0; step < a.steps; ++step) {
+    c.step = step;
+    c.c1 = a.c1[step];
+    c.c2 = a.c2[step];
+    c.l2 = 0.f;
+    for (int p = 0; p < prog[H_N_PHASES]; ++p) {
+      const int* ph = phases + p * PHASE_INTS;
+      for (int i = threadIdx.x; i < ph[2]; i += NT) {
+        int t = ph[0], base = 0;
+        while (i >= base + tasks[t * TASK_INTS + 1]) { base += tasks[t * TASK_INTS + 1]; ++t; }
+        run_item(c, tasks + t * TASK_INTS, i - base);
+      }
+      __syncthreads();
+    }
+    float* st = a.stats + (long long)step * NSTATS;
+    if (step >= prog[H_STATS_FROM]) {
+      const float l2 = block_sum(c.l2, red);
+      if (threadIdx.x == 0) {
+        const float* f = a.floats;
+        const int bs = prog[H_BS];
+        const float* rs = buf(c, B_ROWSTAT);
+        float aux[NSTATS - 2];
+        for (int k = 0; k < NSTATS - 2; ++k) {
+          float s = 0.f;
+          for (int r = 0; r < bs; ++r) s = s + f[F_RHO] * rs[r * (NSTATS - 2) + k];
+          aux[k] = s;
+        }
+        aux[0] = 0.5f * aux[0];  // action
+        aux[2] = 0.5f * aux[2];  // cov
+        aux[3] = 0.5f * aux[3];  // gain
+        const float value = aux[5] + f[F_ALPHA] * aux[4] + aux[0] + aux[3] + aux[2];
+        st[0] = value + f[F_WD] * l2;
+        st[1] = value;
+        for (int k = 0; k < NSTATS - 2; ++k) st[2 + k] = aux[k];
+      }
+      __syncthreads();
+    } else if (threadIdx.x < NSTATS) {
+      st[threadIdx.x] = 0.f;
+    }
+  }
+  for (int l = 0; l < nl; ++l) {
+    const int* L = prog + prog[H_LAYERS] + l * LAYER_INTS;
+    const int K1 = L[2] + 1, N = L[3], S = L[4];
+    for (int e = threadIdx.x; e < K1 * N; e += NT) a.theta[L[0] + e] = sm[L[1] + (e / N) * S + e % N];
+  }
+}
+
+long long per_seed(const ffi::AnyBuffer& b, long long seeds) { return (long long)b.element_count() / seeds; }
+
+ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps, ffi::AnyBuffer c1,
+                     ffi::AnyBuffer c2, ffi::AnyBuffer xn, ffi::AnyBuffer xe, ffi::AnyBuffer sig, ffi::AnyBuffer tgt,
+                     ffi::AnyBuffer prc, ffi::AnyBuffer Kp, ffi::AnyBuffer wt, ffi::AnyBuffer logdet,
+                     ffi::AnyBuffer scale, ffi::AnyBuffer theta0, ffi::AnyBuffer program, ffi::AnyBuffer floats,
+                     ffi::Result<ffi::AnyBuffer> theta, ffi::Result<ffi::AnyBuffer> m, ffi::Result<ffi::AnyBuffer> v,
+                     ffi::Result<ffi::AnyBuffer> stats, int64_t steps, int64_t smem_bytes) {
+  if (idx.element_type() != ffi::DataType::S32 || program.element_type() != ffi::DataType::S32 ||
+      eps.element_type() != ffi::DataType::F32 || theta0.element_type() != ffi::DataType::F32)
+    return ffi::Error::InvalidArgument("gmr_sstep_cuda: idx and program must be int32, the rest float32");
+  const auto dims = idx.dimensions();
+  if (dims.size() < 2) return ffi::Error::InvalidArgument("gmr_sstep_cuda: idx must be [..., steps, batch]");
+  const long long per = (long long)dims[dims.size() - 1] * (long long)dims[dims.size() - 2];
+  const long long seeds = per > 0 ? (long long)idx.element_count() / per : 0;
+  if (seeds < 1 || steps < 1) return ffi::Error::InvalidArgument("gmr_sstep_cuda: no seeds or no steps");
+  Args a{};
+  a.idx = idx.typed_data<int32_t>(); a.eps = eps.typed_data<float>(); a.c1 = c1.typed_data<float>();
+  a.c2 = c2.typed_data<float>(); a.xn = xn.typed_data<float>(); a.xe = xe.typed_data<float>();
+  a.sig = sig.typed_data<float>(); a.tgt = tgt.typed_data<float>(); a.prc = prc.typed_data<float>();
+  a.Kp = Kp.typed_data<float>(); a.wt = wt.typed_data<float>(); a.logdet = logdet.typed_data<float>();
+  a.scale = scale.typed_data<float>(); a.theta0 = theta0.typed_data<float>();
+  a.program = program.typed_data<int32_t>(); a.floats = floats.typed_data<float>();
+  a.theta = theta->typed_data<float>(); a.m = m->typed_data<float>(); a.v = v->typed_data<float>();
+  a.stats = stats->typed_data<float>();
+  a.steps = (int)steps;
+  a.s_idx = per_seed(idx, seeds); a.s_eps = per_seed(eps, seeds); a.s_steps = per_seed(c1, seeds);
+  a.s_xn = per_seed(xn, seeds); a.s_sig = per_seed(sig, seeds); a.s_u = per_seed(tgt, seeds);
+  a.s_uu = per_seed(prc, seeds); a.s_ux = per_seed(Kp, seeds); a.s_b = per_seed(wt, seeds);
+  a.s_x = per_seed(scale, seeds); a.s_theta = per_seed(theta0, seeds); a.s_program = per_seed(program, seeds);
+  a.s_floats = per_seed(floats, seeds); a.s_stats = per_seed(*stats, seeds);
+  cudaError_t err = cudaFuncSetAttribute(gmr_sstep_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                         (int)smem_bytes);
+  if (err == cudaSuccess) {
+    gmr_sstep_kernel<<<(unsigned)seeds, NT, (size_t)smem_bytes, stream>>>(a);
+    err = cudaGetLastError();
+  }
+  if (err != cudaSuccess)
+    return ffi::Error::Internal(std::string("gmr_sstep_cuda: ") + cudaGetErrorString(err));
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(GmrSstepCuda, gmr_sstep,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::PlatformStream<cudaStream_t>>()
+                                  .Arg<ffi::AnyBuffer>()  // idx
+                                  .Arg<ffi::AnyBuffer>()  // eps
+                                  .Arg<ffi::AnyBuffer>()  // c1
+                                  .Arg<ffi::AnyBuffer>()  // c2
+                                  .Arg<ffi::AnyBuffer>()  // xn
+                                  .Arg<ffi::AnyBuffer>()  // xe
+                                  .Arg<ffi::AnyBuffer>()  // sig
+                                  .Arg<ffi::AnyBuffer>()  // tgt
+                                  .Arg<ffi::AnyBuffer>()  // prc
+                                  .Arg<ffi::AnyBuffer>()  // K
+                                  .Arg<ffi::AnyBuffer>()  // wt
+                                  .Arg<ffi::AnyBuffer>()  // logdet
+                                  .Arg<ffi::AnyBuffer>()  // scale
+                                  .Arg<ffi::AnyBuffer>()  // theta0
+                                  .Arg<ffi::AnyBuffer>()  // program
+                                  .Arg<ffi::AnyBuffer>()  // floats
+                                  .Ret<ffi::AnyBuffer>()  // theta
+                                  .Ret<ffi::AnyBuffer>()  // m
+                                  .Ret<ffi::AnyBuffer>()  // v
+                                  .Ret<ffi::AnyBuffer>()  // stats
+                                  .Attr<int64_t>("steps")
+                                  .Attr<int64_t>("smem_bytes"));
