@@ -59,7 +59,7 @@ from experiments import cli
 from jax.flatten_util import ravel_pytree
 
 from gmr_jax import config, mdgps, policies, sharding, sstep, tasks
-from gmr_jax.policies import gmr_kernel
+from gmr_jax.policies import gmr_cuda, gmr_kernel
 
 
 def synthetic_data(cfg: config.Config, key, dtype) -> policies.SStepData:
@@ -277,8 +277,9 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
                 compiler_options=options_given or None)(params, data, jax.random.PRNGKey(3))[0].net
         exact = _flat_weights(net64, args.seeds)
         params, data = _as_float(params, dtype), _as_float(data, dtype)
+    clocks = []  # the CUDA form's profile: clock cycles per phase of each S-step run
     t0 = time.perf_counter()
-    with jax.default_matmul_precision(matmul_precision), traced_as():  # as training traces it
+    with jax.default_matmul_precision(matmul_precision), traced_as(), _cuda_clocks(clocks, impl == "cuda"):
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
     with traced_as():
@@ -325,6 +326,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "weights_sha256": hashlib.sha256(np.asarray(weights).tobytes()).hexdigest()}
     if exact is not None:
         row.update({f"{k}_vs_float64": v for k, v in _relative_differences(weights, exact).items()})
+    if clocks:
+        row["cuda_phases"] = _cuda_phases(cfg, data, clocks, steps, row["us_per_step"])
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
             else f"{impl}/{adam_entries}/{stats_at}" if impl == "packed" else impl)
     if stats_epochs != config.SStepConfig.statistics_epochs:
@@ -347,7 +350,42 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         print("    profile: no device kernels in the trace (not a GPU)", flush=True)
     if exact is not None:
         print(f"    max |θ - θ64| / max |θ64|: {_describe(row, '_vs_float64', args.seeds)}", flush=True)
+    for ph in sorted(row.get("cuda_phases") or [], key=lambda p: -p["us_per_step"])[:8]:
+        print(f"    phase {ph['phase']:2d}: {ph['us_per_step']:6.2f} µs/step  {', '.join(ph['tasks'])}", flush=True)
     return row, weights
+
+
+@contextlib.contextmanager
+def _cuda_clocks(out: list, on: bool):
+    """While tracing: the CUDA form's launches also return their clock cycles per phase, which each
+    run of the program appends to ``out`` ((program ints, cycles [phases + 1]) per launch)."""
+    if not on:
+        yield
+        return
+    launch = gmr_cuda.launch
+
+    def profiled(inp, smem_bytes):
+        theta, stats, cycles = launch(inp, smem_bytes, cycles=True)
+        jax.debug.callback(lambda c: out.append((inp.program, np.asarray(c))), cycles)
+        return theta, stats
+    gmr_cuda.launch = profiled
+    try:
+        yield
+    finally:
+        gmr_cuda.launch = launch
+
+
+def _cuda_phases(cfg, data, clocks, steps: int, us_per_step: float) -> list[dict]:
+    """The first timed run's clock cycles per phase as µs per Adam step (the cycles' shares of
+    the measured step) with each phase's tasks. Seeds side by side: the first seed's block."""
+    ints, cycles = clocks[1] if len(clocks) > 1 else clocks[0]
+    cycles = np.asarray(cycles).reshape(-1, np.asarray(cycles).shape[-1])[0]
+    dX, dU = data.x.shape[-1], data.tgt_mu.shape[-1]
+    names = [L.name for L in gmr_cuda.compact(gmr_kernel.layout(cfg.gmr, dX, dU, cfg.sstep.batch_size))]
+    tasks = gmr_cuda.phase_tasks(np.asarray(ints), names) + [["statistics"]]
+    total = float(np.sum(cycles))
+    return [{"phase": p, "tasks": t, "cycles_per_step": float(c) / steps, "us_per_step": us_per_step * float(c) / total}
+            for p, (t, c) in enumerate(zip(tasks, cycles))]
 
 
 def compiler_options(spec: str, seeds: int) -> dict:

@@ -49,7 +49,7 @@ enum FixedBuffer {
 // The program's header (ints); gmr_cuda.py HEADER names them in this order.
 enum Header {
   H_DX = 0, H_DU, H_X, H_U, H_LAT, H_BS, H_B, H_N_THETA, H_STATS_FROM, H_N_LAYERS, H_N_BUFS, H_N_TASKS,
-  H_N_PHASES, H_LAYERS, H_BUFS, H_TASKS, H_PHASES, H_THETA_SMEM, H_L_GAIN, H_L_CHOL, H_L_XHAT, H_PROGRAM,
+  H_N_PHASES, H_LAYERS, H_BUFS, H_TASKS, H_PHASES, H_THETA_SMEM, H_L_GAIN, H_L_CHOL, H_L_XHAT, H_CYCLES, H_PROGRAM,
   H_SIZE
 };
 constexpr int LAYER_INTS = 5;  // compact offset, shared-memory offset, K, N, row stride S
@@ -84,9 +84,11 @@ struct Args {
   float* m;               // [n]
   float* v;               // [n]
   float* stats;           // [steps, NSTATS]
+  float* cycles;          // [phases + 1]: clock cycles of each phase (and of the statistics), all steps
   int steps;
   // per-seed strides (elements)
-  long long s_idx, s_eps, s_steps, s_xn, s_sig, s_u, s_uu, s_ux, s_b, s_x, s_theta, s_program, s_floats, s_stats;
+  long long s_idx, s_eps, s_steps, s_xn, s_sig, s_u, s_uu, s_ux, s_b, s_x, s_theta, s_program, s_floats, s_stats,
+      s_cycles;
 };
 
 struct Ctx {
@@ -483,7 +485,7 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   a.prc += seed * a.s_uu; a.Kp += seed * a.s_ux; a.wt += seed * a.s_b; a.logdet += seed * a.s_b;
   a.scale += seed * a.s_x; a.theta0 += seed * a.s_theta; a.program += seed * a.s_program;
   a.floats += seed * a.s_floats; a.theta += seed * a.s_theta; a.m += seed * a.s_theta;
-  a.v += seed * a.s_theta; a.stats += seed * a.s_stats;
+  a.v += seed * a.s_theta; a.stats += seed * a.s_stats; a.cycles += seed * a.s_cycles;
 
   int* prog = reinterpret_cast<int*>(sm);
   const int np = a.program[H_PROGRAM];
@@ -503,6 +505,13 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   float* red = buf(c, B_RED);
   const int* phases = prog + prog[H_PHASES];
   const int* tasks = prog + prog[H_TASKS];
+  // each phase's clock cycles (thread 0, after the phase's barrier), in shared memory: a profile
+  // that costs a clock read and an add per phase
+  double* cycles = reinterpret_cast<double*>(sm + prog[prog[H_BUFS] + prog[H_CYCLES] * BUF_INTS]);
+  const int nph = prog[H_N_PHASES];
+  if (threadIdx.x == 0)
+    for (int p = 0; p <= nph; ++p) cycles[p] = 0.0;
+  long long clock0 = clock64();
   for (int step = 0; step < a.steps; ++step) {
     c.step = step;
     c.c1 = a.c1[step];
@@ -516,6 +525,11 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
         run_item(c, tasks + t * TASK_INTS, i - base);
       }
       __syncthreads();
+      if (threadIdx.x == 0) {
+        const long long now = clock64();
+        cycles[p] += (double)(now - clock0);
+        clock0 = now;
+      }
     }
     float* st = a.stats + (long long)step * NSTATS;
     if (step >= prog[H_STATS_FROM]) {
@@ -542,7 +556,14 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
     } else if (threadIdx.x < NSTATS) {
       st[threadIdx.x] = 0.f;
     }
+    if (threadIdx.x == 0) {
+      const long long now = clock64();
+      cycles[nph] += (double)(now - clock0);
+      clock0 = now;
+    }
   }
+  if (threadIdx.x == 0)
+    for (int p = 0; p <= nph; ++p) a.cycles[p] = (float)cycles[p];
   for (int l = 0; l < nl; ++l) {
     const int* L = prog + prog[H_LAYERS] + l * LAYER_INTS;
     const int K1 = L[2] + 1, N = L[3], S = L[4];
@@ -557,7 +578,8 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
                      ffi::AnyBuffer prc, ffi::AnyBuffer Kp, ffi::AnyBuffer wt, ffi::AnyBuffer logdet,
                      ffi::AnyBuffer scale, ffi::AnyBuffer theta0, ffi::AnyBuffer program, ffi::AnyBuffer floats,
                      ffi::Result<ffi::AnyBuffer> theta, ffi::Result<ffi::AnyBuffer> m, ffi::Result<ffi::AnyBuffer> v,
-                     ffi::Result<ffi::AnyBuffer> stats, int64_t steps, int64_t smem_bytes) {
+                     ffi::Result<ffi::AnyBuffer> stats, ffi::Result<ffi::AnyBuffer> cycles, int64_t steps,
+                     int64_t smem_bytes) {
   if (idx.element_type() != ffi::DataType::S32 || program.element_type() != ffi::DataType::S32 ||
       eps.element_type() != ffi::DataType::F32 || theta0.element_type() != ffi::DataType::F32)
     return ffi::Error::InvalidArgument("gmr_sstep_cuda: idx and program must be int32, the rest float32");
@@ -575,12 +597,14 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
   a.program = program.typed_data<int32_t>(); a.floats = floats.typed_data<float>();
   a.theta = theta->typed_data<float>(); a.m = m->typed_data<float>(); a.v = v->typed_data<float>();
   a.stats = stats->typed_data<float>();
+  a.cycles = cycles->typed_data<float>();
   a.steps = (int)steps;
   a.s_idx = per_seed(idx, seeds); a.s_eps = per_seed(eps, seeds); a.s_steps = per_seed(c1, seeds);
   a.s_xn = per_seed(xn, seeds); a.s_sig = per_seed(sig, seeds); a.s_u = per_seed(tgt, seeds);
   a.s_uu = per_seed(prc, seeds); a.s_ux = per_seed(Kp, seeds); a.s_b = per_seed(wt, seeds);
   a.s_x = per_seed(scale, seeds); a.s_theta = per_seed(theta0, seeds); a.s_program = per_seed(program, seeds);
   a.s_floats = per_seed(floats, seeds); a.s_stats = per_seed(*stats, seeds);
+  a.s_cycles = per_seed(*cycles, seeds);
   cudaError_t err = cudaFuncSetAttribute(gmr_sstep_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
                                          (int)smem_bytes);
   if (err == cudaSuccess) {
@@ -617,5 +641,6 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(GmrSstepCuda, gmr_sstep,
                                   .Ret<ffi::AnyBuffer>()  // m
                                   .Ret<ffi::AnyBuffer>()  // v
                                   .Ret<ffi::AnyBuffer>()  // stats
+                                  .Ret<ffi::AnyBuffer>()  // cycles
                                   .Attr<int64_t>("steps")
                                   .Attr<int64_t>("smem_bytes"));

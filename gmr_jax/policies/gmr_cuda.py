@@ -58,7 +58,8 @@ FIXED_BUFFERS = ("rows", "wrow", "xin", "mu", "lv", "z", "klt", "xhat", "gout", 
                  "gmu", "glv", "dk", "dks", "pdks", "L", "V", "T", "pl", "ts", "srn", "rn", "du", "pdu", "tr",
                  "ldt", "rowstat", "red")
 HEADER = ("dX", "dU", "X", "U", "lat", "bs", "B", "n_theta", "stats_from", "n_layers", "n_bufs", "n_tasks",
-          "n_phases", "layers", "bufs", "tasks", "phases", "theta_smem", "l_gain", "l_chol", "l_xhat", "program")
+          "n_phases", "layers", "bufs", "tasks", "phases", "theta_smem", "l_gain", "l_chol", "l_xhat", "cycles",
+          "program")
 FLOATS = ("slope", "alpha", "s", "c", "half_log_init_var", "rho", "lr", "b1", "one_minus_b1", "b2",
           "one_minus_b2", "eps", "wd", "dU")
 TASK_INTS = 9
@@ -138,6 +139,9 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
         buffers.append((name, bs * width, width))
         return bid[name]
 
+    # [phases + 1] doubles: the kernel's profile (clock cycles per phase); its size is set below
+    cycles = len(buffers)
+    buffers.append(("cycles", 0, 1))
     enc, dec, trans = lay.encoder[:-2], lay.decoder[:-1], lay.translation[:-2]
     if not (enc and dec and trans):
         raise ValueError("sstep impl='cuda' needs a hidden layer in each of GMR's three networks: use impl='packed'")
@@ -223,6 +227,7 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
     phases += backward([enc_groups], None)
 
     # the program's ints: header, layers, buffers, tasks, phases; then shared memory offsets
+    buffers[cycles] = ("cycles", 2 * (len(phases) + 1), 1)
     task_list = [t for p in phases for t in p]
     sizes = [len(HEADER), 5 * len(layers), 2 * len(buffers), TASK_INTS * len(task_list), 3 * len(phases)]
     total = sum(sizes)
@@ -251,10 +256,23 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
               "stats_from": stats_from, "n_layers": len(layers), "n_bufs": len(buffers),
               "n_tasks": len(task_list), "n_phases": len(phases), "layers": starts[1], "bufs": starts[2],
               "tasks": starts[3], "phases": starts[4], "theta_smem": theta_smem, "l_gain": lid["gain"],
-              "l_chol": lid["chol"], "l_xhat": lid["xhat"], "program": total}
+              "l_chol": lid["chol"], "l_xhat": lid["xhat"], "cycles": cycles, "program": total}
     ints = np.array([header[k] for k in HEADER] + layer_ints + buf_ints + tasks_ints + phase_ints, np.int32)
     assert len(ints) == total
     return Program(ints, smem_bytes, phases)
+
+
+def phase_tasks(ints: np.ndarray, names: list[str]) -> list[list[str]]:
+    """Each phase of a program as its tasks, "kind" or "kind layer" (``names``: the compact
+    layers' names), for profiles."""
+    h = dict(zip(HEADER, ints[:len(HEADER)].tolist()))
+    tasks = ints[h["tasks"]: h["tasks"] + TASK_INTS * h["n_tasks"]].reshape(-1, TASK_INTS)
+    phases = ints[h["phases"]: h["phases"] + 3 * h["n_phases"]].reshape(-1, 3)
+    out = []
+    for first, count, _ in phases:
+        out.append([TASKS[t[0]] + (f" {names[t[2]]}" if TASKS[t[0]] in ("fwd", "ingrad", "wgrad", "latent") else "")
+                    for t in tasks[first: first + count]])
+    return out
 
 
 def floats(cfg: GMRConfig, scfg: SStepConfig, dU: int, dtype=np.float32) -> np.ndarray:
@@ -352,8 +370,10 @@ def inputs(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx, n
                   prog.ints, floats(cfg, scfg, dU, dtype)), prog.smem_bytes
 
 
-def launch(inp: Inputs, smem_bytes: int):
-    """The kernel on ``inp`` (float32, on the GPU): (θ [n], stats [steps, len(STATS)])."""
+def launch(inp: Inputs, smem_bytes: int, *, cycles: bool = False):
+    """The kernel on ``inp`` (float32, on the GPU): (θ [n], stats [steps, len(STATS)]), and with
+    ``cycles`` the clock cycles of each phase of the program summed over the steps (the last
+    entry: the statistics' reduction) [phases + 1]."""
     if smem_bytes > SMEM_LIMIT:
         raise ValueError(f"sstep impl='cuda': the networks need {smem_bytes} bytes of shared memory, more "
                          f"than {SMEM_LIMIT}: use impl='packed'")
@@ -361,12 +381,14 @@ def launch(inp: Inputs, smem_bytes: int):
     steps = inp.idx.shape[0]
     f32 = jnp.float32
     n = inp.theta0.shape[0]
+    phases = int(inp.program[HEADER.index("n_phases")])
     call = jax.ffi.ffi_call(TARGET, (jax.ShapeDtypeStruct((n,), f32),) * 3
-                            + (jax.ShapeDtypeStruct((steps, len(STATS)), f32),), vmap_method="broadcast_all")
-    theta, _, _, stats = call(inp.idx, inp.eps.astype(f32), inp.c1.astype(f32), inp.c2.astype(f32),
+                            + (jax.ShapeDtypeStruct((steps, len(STATS)), f32), jax.ShapeDtypeStruct((phases + 1,), f32)),
+                            vmap_method="broadcast_all")
+    theta, _, _, stats, clocks = call(inp.idx, inp.eps.astype(f32), inp.c1.astype(f32), inp.c2.astype(f32),
                               *(a.astype(f32) for a in inp.rows), inp.theta0.astype(f32), jnp.asarray(inp.program),
                               jnp.asarray(inp.floats, f32), steps=np.int64(steps), smem_bytes=np.int64(smem_bytes))
-    return theta, stats
+    return (theta, stats, clocks) if cycles else (theta, stats)
 
 
 def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx, noise, c1, c2, *, run=None):
