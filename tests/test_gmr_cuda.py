@@ -118,7 +118,7 @@ def emulate(inp: gmr_cuda.Inputs):
                 kind, a = gmr_cuda.TASKS[t[0]], t[2:]
                 if kind == "gather":
                     r = idx[step]
-                    buf[F["xin"]][:] = R.xn[r, :dX]
+                    buf[F["xin"]][:, :dX] = R.xn[r, :dX]
                     buf[F["rows"]][:, 0] = r
                     buf[F["wrow"]][:, 0] = R.wt[r]
                     buf[F["gz"]][:] = 0
@@ -150,9 +150,9 @@ def emulate(inp: gmr_cuda.Inputs):
                     K = Wm.shape[0] - 1
                     x = buf[a[2]][:, :K]
                     mu, lv = x @ Wm[:K] + Wm[K], x @ Wv[:K] + Wv[K]
-                    buf[F["mu"]][:], buf[F["lv"]][:] = mu, lv
-                    buf[F["z"]][:] = mu + np.exp(0.5 * lv) * eps[step]
-                    buf[F["klt"]][:] = mu * mu + np.exp(lv) - lv - 1
+                    buf[F["mu"]][:, :lat], buf[F["lv"]][:, :lat] = mu, lv
+                    buf[F["z"]][:, :lat] = mu + np.exp(0.5 * lv) * eps[step]
+                    buf[F["klt"]][:, :lat] = mu * mu + np.exp(lv) - lv - 1
                 elif kind == "head1":
                     C = buf[F["cout"]]
                     G = buf[F["gout"]]
@@ -186,11 +186,11 @@ def emulate(inp: gmr_cuda.Inputs):
                 elif kind == "head4":
                     r = rows_of()
                     rho, w = f["rho"], buf[F["wrow"]][:, 0]
-                    NG, NC = buf[F["dg"]].shape[1], buf[F["dc"]].shape[1]
+                    NG, NC = layers[h["l_gain"]][3], layers[h["l_chol"]][3]
                     gG = np.zeros((bs, dU, X), dt)
                     gG[:] = (rho * buf[F["pdu"]])[:, :, None] * R.xe[r][:, None, :]
                     gG[:, :, :dX] += (rho * buf[F["pdks"]].reshape(bs, dU, dX)) * R.scale[:dX]
-                    buf[F["dg"]][:] = gG.reshape(bs, -1)[:, :NG]
+                    buf[F["dg"]][:, :NG] = gG.reshape(bs, -1)[:, :NG]
                     q = rho * buf[F["tr"]] + (-rho) * w[:, None]
                     V, T = buf[F["V"]].reshape(bs, dU, dU), buf[F["T"]].reshape(bs, dU, dU)
                     rn, srn, tt = buf[F["rn"]], buf[F["srn"]], buf[F["ts"]]
@@ -199,23 +199,23 @@ def emulate(inp: gmr_cuda.Inputs):
                     gfull = np.where(lower, gV * (1 - T * T), 0) + np.eye(dU) * (q * (1 - tt * tt))[:, :, None]
                     gc = np.zeros((bs, U, U), dt)
                     gc[:, :dU, :dU] = gfull
-                    buf[F["dc"]][:] = gc.reshape(bs, -1)[:, :NC]
-                    diff = buf[F["xin"]] - buf[F["xhat"]]
-                    buf[F["dxh"]][:] = (-2 * rho * w)[:, None] * diff
+                    buf[F["dc"]][:, :NC] = gc.reshape(bs, -1)[:, :NC]
+                    diff = buf[F["xin"]][:, :dX] - buf[F["xhat"]][:, :dX]
+                    buf[F["dxh"]][:, :dX] = (-2 * rho * w)[:, None] * diff
                     du, pdu = buf[F["du"]], buf[F["pdu"]]
                     rs = buf[F["rowstat"]]
                     rs[:, 0] = np.sum(du * pdu, 1)
                     rs[:, 1] = np.sum(du * du, 1) / f["dU"]
                     rs[:, 2] = np.sum(buf[F["tr"]], 1) - w * (2 * np.sum(buf[F["ldt"]], 1) + f["dU"] + R.logdet[r])
                     rs[:, 3] = np.sum(buf[F["dk"]] * buf[F["pdks"]], 1)
-                    rs[:, 4] = w * 0.5 * np.sum(buf[F["klt"]], 1)
+                    rs[:, 4] = w * 0.5 * np.sum(buf[F["klt"]][:, :lat], 1)
                     rs[:, 5] = w * np.sum(diff * diff, 1)
                 elif kind == "latent_grad":
                     w = buf[F["wrow"]][:, 0]
                     ct = (f["alpha"] * 0.5 * f["rho"] * w)[:, None]
-                    mu, lv, gz = buf[F["mu"]], buf[F["lv"]], buf[F["gz"]]
-                    buf[F["gmu"]][:] = gz + ct * (2 * mu)
-                    buf[F["glv"]][:] = gz * eps[step] * (0.5 * np.exp(0.5 * lv)) + ct * (np.exp(lv) - 1)
+                    mu, lv, gz = buf[F["mu"]][:, :lat], buf[F["lv"]][:, :lat], buf[F["gz"]][:, :lat]
+                    buf[F["gmu"]][:, :lat] = gz + ct * (2 * mu)
+                    buf[F["glv"]][:, :lat] = gz * eps[step] * (0.5 * np.exp(0.5 * lv)) + ct * (np.exp(lv) - 1)
         if step >= h["stats_from"]:
             aux = np.sum(f["rho"] * buf[F["rowstat"]], axis=0)
             aux[[0, 2, 3]] *= 0.5

@@ -110,6 +110,11 @@ __device__ __forceinline__ float leaky(float x, float slope) { return x >= 0.f ?
 
 // ---------------------------------------------------------------- the networks' tasks
 
+// Activation and cotangent buffers whose rows a product reads four at a time have rows of a
+// multiple of four floats, 16-byte aligned (program() pads them), so a thread reads 4 entries of a
+// row in one instruction.
+__device__ __forceinline__ float4 ld4(const float* p) { return *reinterpret_cast<const float4*>(p); }
+
 // out[r, n] = act(Σ_k A[r, k] W[k, n] + b[n]) for RG rows r of one column n.
 __device__ void fwd_item(const Ctx& c, const int* t, int i) {
   const int* L = layer(c, t[0]);
@@ -121,13 +126,26 @@ __device__ void fwd_item(const Ctx& c, const int* t, int i) {
   const int ldo = ld(c, t[2]);
   const int bs = c.prog[H_BS];
   const int n = i % N, r0 = (i / N) * RG;
+  const float* Ar[RG];
+#pragma unroll
+  for (int j = 0; j < RG; ++j) Ar[j] = A + min(r0 + j, bs - 1) * lda;
   float acc[RG];
 #pragma unroll
   for (int j = 0; j < RG; ++j) acc[j] = 0.f;
-  for (int k = 0; k < K; ++k) {
+  int k = 0;
+#pragma unroll 2
+  for (; k + 4 <= K; k += 4) {
+    const float w0 = W[k * S + n], w1 = W[(k + 1) * S + n], w2 = W[(k + 2) * S + n], w3 = W[(k + 3) * S + n];
+#pragma unroll
+    for (int j = 0; j < RG; ++j) {
+      const float4 a = ld4(Ar[j] + k);
+      acc[j] = fmaf(a.w, w3, fmaf(a.z, w2, fmaf(a.y, w1, fmaf(a.x, w0, acc[j]))));
+    }
+  }
+  for (; k < K; ++k) {
     const float w = W[k * S + n];
 #pragma unroll
-    for (int j = 0; j < RG; ++j) acc[j] = fmaf(A[min(r0 + j, bs - 1) * lda + k], w, acc[j]);
+    for (int j = 0; j < RG; ++j) acc[j] = fmaf(Ar[j][k], w, acc[j]);
   }
   const float b = W[K * S + n];
 #pragma unroll
@@ -147,10 +165,23 @@ __device__ __forceinline__ void transposed_product(const Ctx& c, int l, int d, i
   const float* D = buf(c, d);
   const int ldd = ld(c, d);
   const int bs = c.prog[H_BS];
-  for (int n = 0; n < N; ++n) {
+  const float* Dr[RG];
+#pragma unroll
+  for (int j = 0; j < RG; ++j) Dr[j] = D + min(r0 + j, bs - 1) * ldd;
+  int n = 0;
+#pragma unroll 2
+  for (; n + 4 <= N; n += 4) {
+    const float w0 = W[n], w1 = W[n + 1], w2 = W[n + 2], w3 = W[n + 3];
+#pragma unroll
+    for (int j = 0; j < RG; ++j) {
+      const float4 g = ld4(Dr[j] + n);
+      acc[j] = fmaf(g.w, w3, fmaf(g.z, w2, fmaf(g.y, w1, fmaf(g.x, w0, acc[j]))));
+    }
+  }
+  for (; n < N; ++n) {
     const float w = W[n];
 #pragma unroll
-    for (int j = 0; j < RG; ++j) acc[j] = fmaf(D[min(r0 + j, bs - 1) * ldd + n], w, acc[j]);
+    for (int j = 0; j < RG; ++j) acc[j] = fmaf(Dr[j][n], w, acc[j]);
   }
 }
 
@@ -179,22 +210,22 @@ __device__ void ingrad_item(const Ctx& c, const int* t, int i) {
   }
 }
 
-// One step of optax.adam on θ (shared memory) and its moments (global memory), operation for
-// operation as gmr_jax.adam.adam_update, on the gradient g + β·2θ.
-__device__ __forceinline__ void adam(Ctx& c, float* theta, long long gi, float g) {
+// One step of optax.adam on θ (shared memory) given its moments m, v (read before, written
+// after by the caller), operation for operation as gmr_jax.adam.adam_update, on the gradient
+// g + β·2θ.
+__device__ __forceinline__ void adam(Ctx& c, float* theta, float& m, float& v, float g) {
   const float* f = c.f;
   const float th = *theta;
   c.l2 = fmaf(th, th, c.l2);
   g = g + f[F_WD] * (2.f * th);
-  const float m = f[F_ONE_MINUS_B1] * g + f[F_B1] * c.a.m[gi];
-  const float v = f[F_ONE_MINUS_B2] * (g * g) + f[F_B2] * c.a.v[gi];
-  c.a.m[gi] = m;
-  c.a.v[gi] = v;
+  m = f[F_ONE_MINUS_B1] * g + f[F_B1] * m;
+  v = f[F_ONE_MINUS_B2] * (g * g) + f[F_B2] * v;
   *theta = th + -f[F_LR] * ((m / c.c1) / (sqrtf(v / c.c2 + 0.f) + f[F_EPS]));
 }
 
 // The gradients of KG weight rows k (row K: the bias) of one column n, and their Adam steps.
-// t: layer, h (the layer's input), D (the cotangent of its output).
+// t: layer, h (the layer's input), D (the cotangent of its output). The entries' moments are
+// read from global memory before the sums, so that their latency overlaps the arithmetic.
 __device__ void wgrad_item(Ctx& c, const int* t, int i) {
   const int* L = layer(c, t[0]);
   const int K = L[2], N = L[3], S = L[4];
@@ -204,21 +235,44 @@ __device__ void wgrad_item(Ctx& c, const int* t, int i) {
   const float* D = buf(c, t[2]);
   const int ldd = ld(c, t[2]);
   const int bs = c.prog[H_BS];
+  float m[KG], v[KG];
+  const long long g0 = (long long)L[0] + (long long)k0 * N + n;
+#pragma unroll
+  for (int q = 0; q < KG; ++q) {
+    m[q] = k0 + q <= K ? c.a.m[g0 + (long long)q * N] : 0.f;
+    v[q] = k0 + q <= K ? c.a.v[g0 + (long long)q * N] : 0.f;
+  }
   float acc[KG];
 #pragma unroll
   for (int q = 0; q < KG; ++q) acc[q] = 0.f;
-  for (int r = 0; r < bs; ++r) {
-    const float d = D[r * ldd + n];
+  if (k0 + KG <= K) {  // four weight rows: h[r, k0 .. k0 + 3] in one read
+#pragma unroll 4
+    for (int r = 0; r < bs; ++r) {
+      const float d = D[r * ldd + n];
+      const float4 x = ld4(h + r * ldh + k0);
+      acc[0] = fmaf(x.x, d, acc[0]);
+      acc[1] = fmaf(x.y, d, acc[1]);
+      acc[2] = fmaf(x.z, d, acc[2]);
+      acc[3] = fmaf(x.w, d, acc[3]);
+    }
+  } else {
+    for (int r = 0; r < bs; ++r) {
+      const float d = D[r * ldd + n];
 #pragma unroll
-    for (int q = 0; q < KG; ++q) {
-      const int k = k0 + q;
-      acc[q] = k < K ? fmaf(h[r * ldh + k], d, acc[q]) : (k == K ? acc[q] + d : acc[q]);
+      for (int q = 0; q < KG; ++q) {
+        const int k = k0 + q;
+        acc[q] = k < K ? fmaf(h[r * ldh + k], d, acc[q]) : (k == K ? acc[q] + d : acc[q]);
+      }
     }
   }
 #pragma unroll
   for (int q = 0; q < KG; ++q) {
     const int k = k0 + q;
-    if (k <= K) adam(c, c.sm + L[1] + k * S + n, (long long)L[0] + (long long)k * N + n, acc[q]);
+    if (k <= K) {
+      adam(c, c.sm + L[1] + k * S + n, m[q], v[q], acc[q]);
+      c.a.m[g0 + (long long)q * N] = m[q];
+      c.a.v[g0 + (long long)q * N] = v[q];
+    }
   }
 }
 
@@ -243,10 +297,10 @@ __device__ void latent_item(const Ctx& c, const int* t, int i) {
   lv = lv + Wv[K * Lv[4] + j];
   const float sd = expf(0.5f * lv), var = expf(lv);
   const float e = c.a.eps[((long long)c.step * c.prog[H_BS] + r) * lat + j];
-  buf(c, B_MU)[r * lat + j] = mu;
-  buf(c, B_LV)[r * lat + j] = lv;
-  buf(c, B_Z)[r * lat + j] = mu + sd * e;
-  buf(c, B_KLT)[r * lat + j] = mu * mu + var - lv - 1.f;
+  buf(c, B_MU)[r * ld(c, B_MU) + j] = mu;
+  buf(c, B_LV)[r * ld(c, B_LV) + j] = lv;
+  buf(c, B_Z)[r * ld(c, B_Z) + j] = mu + sd * e;
+  buf(c, B_KLT)[r * ld(c, B_KLT) + j] = mu * mu + var - lv - 1.f;
 }
 
 __device__ void latent_grad_item(const Ctx& c, int i) {
@@ -254,11 +308,11 @@ __device__ void latent_grad_item(const Ctx& c, int i) {
   const int r = i / lat, j = i % lat;
   const float w = buf(c, B_WROW)[r];
   const float ct = c.f[F_ALPHA] * 0.5f * c.f[F_RHO] * w;
-  const float mu = buf(c, B_MU)[r * lat + j], lv = buf(c, B_LV)[r * lat + j];
-  const float gz = buf(c, B_GZ)[r * lat + j];
+  const float mu = buf(c, B_MU)[r * ld(c, B_MU) + j], lv = buf(c, B_LV)[r * ld(c, B_LV) + j];
+  const float gz = buf(c, B_GZ)[r * ld(c, B_GZ) + j];
   const float e = c.a.eps[((long long)c.step * c.prog[H_BS] + r) * lat + j];
-  buf(c, B_GMU)[r * lat + j] = gz + ct * (2.f * mu);
-  buf(c, B_GLV)[r * lat + j] = gz * e * (0.5f * expf(0.5f * lv)) + ct * (expf(lv) - 1.f);
+  buf(c, B_GMU)[r * ld(c, B_GMU) + j] = gz + ct * (2.f * mu);
+  buf(c, B_GLV)[r * ld(c, B_GLV) + j] = gz * e * (0.5f * expf(0.5f * lv)) + ct * (expf(lv) - 1.f);
 }
 
 __device__ void gather_item(const Ctx& c, int i) {
@@ -266,13 +320,13 @@ __device__ void gather_item(const Ctx& c, int i) {
   if (i < bs * dX) {
     const int r = i / dX, j = i % dX;
     const int row = c.a.idx[(long long)c.step * bs + r];
-    buf(c, B_XIN)[r * dX + j] = c.a.xn[(long long)row * X + j];
+    buf(c, B_XIN)[r * ld(c, B_XIN) + j] = c.a.xn[(long long)row * X + j];
     if (j == 0) {
       buf(c, B_ROWS)[r] = __int_as_float(row);
       buf(c, B_WROW)[r] = c.a.wt[row];
     }
   } else {
-    buf(c, B_GZ)[i - bs * dX] = 0.f;  // [bs, lat]
+    buf(c, B_GZ)[i - bs * dX] = 0.f;  // [bs, ld(gz)]
     (void)lat;
   }
 }
@@ -293,6 +347,7 @@ __device__ void head1_item(const Ctx& c, int i) {
     float* V = buf(c, B_V) + r * dU * dU + a * dU;
     float* T = buf(c, B_T) + r * dU * dU + a * dU;
     float ss = 0.f;
+#pragma unroll 4
     for (int b = 0; b < dU; ++b) {
       const float Tb = tanhf(C[a * U + b] / f[F_C]);
       const float Vb = (b < a ? f[F_C] * Tb : 0.f) + (b == a ? 1.f : 0.f);
@@ -309,6 +364,7 @@ __device__ void head1_item(const Ctx& c, int i) {
     buf(c, B_LDT)[r * dU + a] = log_sigma - logf(rn);
     const float* xe = c.a.xe + (long long)row * X;
     float du = 0.f;
+    #pragma unroll 4
     for (int j = 0; j <= dX; ++j) du = fmaf(G[a * X + j], xe[j], du);
     buf(c, B_DU)[r * dU + a] = du - c.a.tgt[(long long)row * U + a];
   } else {
@@ -327,6 +383,7 @@ __device__ void head2_item(const Ctx& c, int i) {
     const float* dK = buf(c, B_DK) + r * dU * dX + a * dX;
     const float* sg = c.a.sig + ((long long)row * X + j) * X;
     float s = 0.f;
+    #pragma unroll 4
     for (int k = 0; k < dX; ++k) s = fmaf(dK[k], sg[k], s);
     buf(c, B_DKS)[r * dU * dX + a * dX + j] = s;
     return;
@@ -337,6 +394,7 @@ __device__ void head2_item(const Ctx& c, int i) {
     const float* P = c.a.prc + ((long long)row * U + a) * U;
     const float* du = buf(c, B_DU) + r * dU;
     float s = 0.f;
+    #pragma unroll 4
     for (int b = 0; b < dU; ++b) s = fmaf(P[b], du[b], s);
     buf(c, B_PDU)[r * dU + a] = s;
     return;
@@ -346,6 +404,7 @@ __device__ void head2_item(const Ctx& c, int i) {
   const float* P = c.a.prc + ((long long)row * U + a) * U;
   const float* L = buf(c, B_L) + r * dU * dU;
   float s = 0.f;
+  #pragma unroll 4
   for (int k = 0; k < dU; ++k) s = fmaf(P[k], L[k * dU + b], s);
   buf(c, B_PL)[r * dU * dU + a * dU + b] = s;
 }
@@ -358,6 +417,7 @@ __device__ void head3_item(const Ctx& c, int i) {
     const float* P = c.a.prc + ((long long)row * U + a) * U;
     const float* dKS = buf(c, B_DKS) + r * dU * dX;
     float s = 0.f;
+    #pragma unroll 4
     for (int k = 0; k < dU; ++k) s = fmaf(P[k], dKS[k * dX + j], s);
     buf(c, B_PDKS)[r * dU * dX + a * dX + j] = s;
     return;
@@ -410,8 +470,8 @@ __device__ void head4_item(const Ctx& c, int i) {
   if (i < bs * dX) {
     const int r = i / dX, j = i % dX;
     const float w = buf(c, B_WROW)[r];
-    const float diff = buf(c, B_XIN)[r * dX + j] - buf(c, B_XHAT)[r * dX + j];
-    buf(c, B_DXH)[r * dX + j] = (-2.f * rho * w) * diff;
+    const float diff = buf(c, B_XIN)[r * ld(c, B_XIN) + j] - buf(c, B_XHAT)[r * ld(c, B_XHAT) + j];
+    buf(c, B_DXH)[r * ld(c, B_DXH) + j] = (-2.f * rho * w) * diff;
     return;
   }
   // the row's loss terms, in STATS order after total and value:
@@ -433,11 +493,11 @@ __device__ void head4_item(const Ctx& c, int i) {
   for (int e = 0; e < dU * dX; ++e) gain = fmaf(dK[e], pdks[e], gain);
   float recon = 0.f;
   for (int j = 0; j < dX; ++j) {
-    const float diff = buf(c, B_XIN)[r * dX + j] - buf(c, B_XHAT)[r * dX + j];
+    const float diff = buf(c, B_XIN)[r * ld(c, B_XIN) + j] - buf(c, B_XHAT)[r * ld(c, B_XHAT) + j];
     recon = fmaf(diff, diff, recon);
   }
   float kl = 0.f;
-  for (int j = 0; j < lat; ++j) kl = kl + buf(c, B_KLT)[r * lat + j];
+  for (int j = 0; j < lat; ++j) kl = kl + buf(c, B_KLT)[r * ld(c, B_KLT) + j];
   float* out = buf(c, B_ROWSTAT) + r * (NSTATS - 2);
   out[0] = action;
   out[1] = mse / f[F_DU];

@@ -121,11 +121,15 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
     NG, NC = by_name["gain"].N, by_name["chol"].N
     rg = -(-bs // ROWS_PER_ITEM)
 
-    # buffers: (name, floats, leading dimension)
-    fixed = {"rows": (bs, 1), "wrow": (bs, 1), "xin": (bs * dX, dX), "mu": (bs * lat, lat), "lv": (bs * lat, lat),
-             "z": (bs * lat, lat), "klt": (bs * lat, lat), "xhat": (bs * dX, dX), "gout": (bs * NG, NG),
-             "cout": (bs * NC, NC), "dg": (bs * NG, NG), "dc": (bs * NC, NC), "dxh": (bs * dX, dX),
-             "gz": (bs * lat, lat), "gmu": (bs * lat, lat), "glv": (bs * lat, lat)}
+    # buffers: (name, floats, leading dimension); a product reads the rows of its operands four
+    # floats at a time, so their rows are padded to a multiple of four
+    def rows4(width):
+        width = -(-width // 4) * 4
+        return bs * width, width
+    fixed = {"rows": (bs, 1), "wrow": (bs, 1), "xin": rows4(dX), "mu": (bs * lat, lat), "lv": (bs * lat, lat),
+             "z": rows4(lat), "klt": (bs * lat, lat), "xhat": (bs * dX, dX), "gout": (bs * NG, NG),
+             "cout": (bs * NC, NC), "dg": rows4(NG), "dc": rows4(NC), "dxh": rows4(dX),
+             "gz": rows4(lat), "gmu": rows4(lat), "glv": rows4(lat)}
     fixed.update({k: (bs * dU * dX, dU * dX) for k in ("dk", "dks", "pdks")})
     fixed.update({k: (bs * dU * dU, dU * dU) for k in ("L", "V", "T", "pl")})
     fixed.update({k: (bs * dU, dU) for k in ("ts", "srn", "rn", "du", "pdu", "tr", "ldt")})
@@ -136,7 +140,7 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
 
     def new_buffer(name, width):
         bid[name] = len(buffers)
-        buffers.append((name, bs * width, width))
+        buffers.append((name, *rows4(width)))
         return bid[name]
 
     # [phases + 1] doubles: the kernel's profile (clock cycles per phase); its size is set below
@@ -168,7 +172,7 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
         L = by_name[name]
         return task("wgrad", L.N * -(-(L.K + 1) // WEIGHT_ROWS_PER_ITEM), lid[name], src, dd)
 
-    phases = [[task("gather", bs * dX + bs * lat)]]
+    phases = [[task("gather", bs * dX + fixed["gz"][0])]]
     src = bid["xin"]
     for name in enc:
         phases.append([fwd(name, src, h[name], True)])
