@@ -36,6 +36,8 @@ def test_the_python_names_follow_the_cu_files_enums():
     assert _enum("Floats")[:-1] == ["F_" + f.upper() for f in gmr_cuda.FLOATS]
     assert f"constexpr int NT = {gmr_cuda.THREADS};" in CU
     assert f"constexpr int TASK_INTS = {gmr_cuda.TASK_INTS};" in CU
+    assert f"constexpr int KG = {gmr_cuda.WEIGHT_ROWS_PER_ITEM};" in CU
+    assert f"constexpr int RG = {gmr_cuda.ROWS_PER_ITEM};" in CU
 
 
 # ------------------------------------------------ the host emulation of the kernel's program
@@ -107,7 +109,9 @@ def emulate(inp: gmr_cuda.Inputs):
         m[sl] = f["one_minus_b1"] * g + f["b1"] * m[sl]
         v[sl] = f["one_minus_b2"] * (g * g) + f["b2"] * v[sl]
         l2 = np.sum(th * th)
-        theta[sl] = th + -f["lr"] * ((m[sl] / c1[step]) / (np.sqrt(v[sl] / c2[step] + 0) + f["eps"]))
+        # the kernel's form of Adam's update: the corrections as reciprocals, one division
+        rc1, rc2 = 1 / c1[step], 1 / c2[step]
+        theta[sl] = th + -f["lr"] * ((m[sl] * rc1) / (np.sqrt(v[sl] * rc2) + f["eps"]))
         return l2
 
     stats = np.zeros((len(idx), len(gmr_cuda.STATS)), dt)

@@ -34,7 +34,7 @@ namespace {
 
 constexpr int NT = 512;   // threads per block
 constexpr int RG = 4;     // rows per item of FWD and INGRAD
-constexpr int KG = 4;     // weight rows per item of WGRAD
+constexpr int KG = 8;     // weight rows per item of WGRAD (a multiple of 4)
 constexpr int NSTATS = 8; // total, value, action, action_mse, cov, gain, latent_kl, recon
 
 enum TaskKind { GATHER = 0, FWD, INGRAD, WGRAD, LATENT, HEAD1, HEAD2, HEAD3, HEAD4, LATENT_GRAD };
@@ -97,7 +97,7 @@ struct Ctx {
   const float* f;       // float parameters
   Args a;
   int step;
-  float c1, c2;
+  float rc1, rc2;       // 1 / Adam's bias corrections of the step
   float l2;             // this thread's Σθ² of the step's updated entries (before the update)
 };
 
@@ -211,8 +211,10 @@ __device__ void ingrad_item(const Ctx& c, const int* t, int i) {
 }
 
 // One step of optax.adam on θ (shared memory) given its moments m, v (read before, written
-// after by the caller), operation for operation as gmr_jax.adam.adam_update, on the gradient
-// g + β·2θ.
+// after by the caller) on the gradient g + β·2θ: gmr_jax.adam.adam_update's operations, with the
+// step's bias corrections as reciprocals (c.rc1 = 1/c1, c.rc2 = 1/c2) and one fast division, so
+// each entry costs a few instructions instead of three IEEE divisions (each rounds within an ulp
+// or two of the packed form's).
 __device__ __forceinline__ void adam(Ctx& c, float* theta, float& m, float& v, float g) {
   const float* f = c.f;
   const float th = *theta;
@@ -220,12 +222,13 @@ __device__ __forceinline__ void adam(Ctx& c, float* theta, float& m, float& v, f
   g = g + f[F_WD] * (2.f * th);
   m = f[F_ONE_MINUS_B1] * g + f[F_B1] * m;
   v = f[F_ONE_MINUS_B2] * (g * g) + f[F_B2] * v;
-  *theta = th + -f[F_LR] * ((m / c.c1) / (sqrtf(v / c.c2 + 0.f) + f[F_EPS]));
+  *theta = th + -f[F_LR] * __fdividef(m * c.rc1, __fsqrt_rn(v * c.rc2) + f[F_EPS]);
 }
 
 // The gradients of KG weight rows k (row K: the bias) of one column n, and their Adam steps.
 // t: layer, h (the layer's input), D (the cotangent of its output). The entries' moments are
-// read from global memory before the sums, so that their latency overlaps the arithmetic.
+// read from global memory before the sums (a compiler barrier keeps the reads there), so that
+// their latency overlaps the arithmetic.
 __device__ void wgrad_item(Ctx& c, const int* t, int i) {
   const int* L = layer(c, t[0]);
   const int K = L[2], N = L[3], S = L[4];
@@ -242,18 +245,22 @@ __device__ void wgrad_item(Ctx& c, const int* t, int i) {
     m[q] = k0 + q <= K ? c.a.m[g0 + (long long)q * N] : 0.f;
     v[q] = k0 + q <= K ? c.a.v[g0 + (long long)q * N] : 0.f;
   }
+  asm volatile("" ::: "memory");
   float acc[KG];
 #pragma unroll
   for (int q = 0; q < KG; ++q) acc[q] = 0.f;
-  if (k0 + KG <= K) {  // four weight rows: h[r, k0 .. k0 + 3] in one read
+  if (k0 + KG <= K) {  // KG weight rows: h[r, k0 .. k0 + KG - 1] in KG / 4 reads
 #pragma unroll 4
     for (int r = 0; r < bs; ++r) {
       const float d = D[r * ldd + n];
-      const float4 x = ld4(h + r * ldh + k0);
-      acc[0] = fmaf(x.x, d, acc[0]);
-      acc[1] = fmaf(x.y, d, acc[1]);
-      acc[2] = fmaf(x.z, d, acc[2]);
-      acc[3] = fmaf(x.w, d, acc[3]);
+#pragma unroll
+      for (int q = 0; q < KG; q += 4) {
+        const float4 x = ld4(h + r * ldh + k0 + q);
+        acc[q] = fmaf(x.x, d, acc[q]);
+        acc[q + 1] = fmaf(x.y, d, acc[q + 1]);
+        acc[q + 2] = fmaf(x.z, d, acc[q + 2]);
+        acc[q + 3] = fmaf(x.w, d, acc[q + 3]);
+      }
     }
   } else {
     for (int r = 0; r < bs; ++r) {
@@ -574,8 +581,8 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   long long clock0 = clock64();
   for (int step = 0; step < a.steps; ++step) {
     c.step = step;
-    c.c1 = a.c1[step];
-    c.c2 = a.c2[step];
+    c.rc1 = 1.f / a.c1[step];
+    c.rc2 = 1.f / a.c2[step];
     c.l2 = 0.f;
     for (int p = 0; p < prog[H_N_PHASES]; ++p) {
       const int* ph = phases + p * PHASE_INTS;
