@@ -45,6 +45,9 @@ def parse_args(argv=None):
     p.add_argument("--repeats", type=int, default=1, help="timed runs per seed count (median)")
     p.add_argument("--adam-entries", default=config.SStepConfig.adam_entries, choices=config.SSTEP_ADAM_ENTRIES,
                    help="sstep.adam_entries (default: %(default)s; \"trained\" is faster with many seeds)")
+    p.add_argument("--sstep-impl", default=config.SStepConfig.impl, choices=config.SSTEP_IMPLS,
+                   help="sstep.impl, the S-step's form (default: %(default)s; \"cuda\": GMR's hand-written "
+                        "CUDA kernel, float32 on an NVIDIA GPU with nvcc)")
     cli.add_precision_argument(p)
     p.add_argument("--devices", type=int, default=None, help="local devices to split the seeds over "
                    "(default: all)")
@@ -60,13 +63,14 @@ def main(argv=None) -> int:
     args.precision = cli.setup_jax(args.precision)
     cfg = config.reach(args.scenario, args.algorithm, iterations=args.iterations,
                        num_samples=args.samples, task__T=args.T, sim__backend=args.backend,
-                       sstep__adam_entries=args.adam_entries)
+                       sstep__adam_entries=args.adam_entries, sstep__impl=args.sstep_impl)
     mesh = sharding.seed_mesh(args.devices)
     dev = jax.devices()[0]
     env = {"date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "device": dev.device_kind,
            "precision": args.precision,
            "backend": dev.platform, "devices": mesh.size, "jax": jax.__version__, "python": platform.python_version(),
-           "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
+           "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""), "sstep_impl": args.sstep_impl,
+           "adam_entries": args.adam_entries}
     print(f"Device: {env['device']} ({env['backend']}) × {mesh.size}, jax {env['jax']}, {env['date']}")
     print(f"{args.algorithm} on {args.scenario}: {cfg.iterations} iterations, {cfg.num_samples} samples, "
           f"T = {cfg.task.T}, {cfg.task.num_conditions} condition(s)", flush=True)

@@ -331,7 +331,7 @@ class PolicyPriorConfig:
 # Policy and S-step (mdgps-toolbox.md §4.3, gmr-method.md §1–§3)
 
 
-SSTEP_IMPLS = ("auto", "kernel", "packed", "reference")
+SSTEP_IMPLS = ("auto", "cuda", "kernel", "packed", "reference")
 SSTEP_ADAM_ENTRIES = ("all", "trained")
 SSTEP_STATISTICS = ("auto", "epoch", "step")
 SSTEP_STATISTICS_EPOCHS = ("last", "all")
@@ -351,8 +351,10 @@ class SStepConfig:
       obs_std_floor: floor of the input standard deviation in the normalisation (toolbox 1e-3).
       weight_median_floor: weights above this take part in the median of the weight rule (1e-2).
       weight_clip: weights are clipped at weight_clip × median before dividing by it (2).
-      impl: the S-step's form (``gmr_jax.sstep``, equal to round-off): "kernel" (GMR: all Adam
-        steps in one GPU kernel; other policies: "packed"), "packed" (one packed weight
+      impl: the S-step's form (``gmr_jax.sstep``, equal to round-off): "cuda" (GMR: all Adam
+        steps in one hand-written CUDA kernel, one thread block per seed; float32 on an NVIDIA
+        GPU, built with nvcc on first use; other policies: "packed"), "kernel" (GMR: all Adam
+        steps in one Pallas kernel; other policies: "packed"), "packed" (one packed weight
         vector and data matrix, a few fused operations per minibatch step: fast on a GPU),
         "reference" (per-layer Flax networks and optax: fast on a CPU), or "auto" (packed on an
         accelerator, reference on a CPU).
