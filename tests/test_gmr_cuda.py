@@ -47,7 +47,7 @@ def _reads_writes(kind, a):
     F = {name: i for i, name in enumerate(gmr_cuda.FIXED_BUFFERS)}
     W = lambda lay: {("W", lay)} if lay >= 0 else set()  # noqa: E731
     if kind == "gather":
-        return set(), {F["xin"], F["rows"], F["wrow"], F["gz"]}
+        return set(), {F[n] for n in ("xin", "rows", "wrow", "gz", "sig", "prc", "xe", "tgt", "ldp")}
     if kind == "fwd":
         return {a[1]} | W(a[0]), {a[2]}
     if kind == "ingrad":
@@ -57,10 +57,10 @@ def _reads_writes(kind, a):
         return {a[1], a[2]} | W(a[0]), W(a[0])
     if kind == "latent":
         return {a[2]} | W(a[0]) | W(a[1]), {F["mu"], F["lv"], F["z"], F["klt"]}
-    names = {"head1": ("cout gout rows", "V T L ts srn rn ldt du dk"),
-             "head2": ("dk du L rows", "dks pdu pl"),
-             "head3": ("dks L pl rows", "pdks tr"),
-             "head4": ("pdu pdks tr wrow pl rn srn V T ts xin xhat du ldt dk klt rows", "dg dc dxh rowstat"),
+    names = {"head1": ("cout gout rows xe tgt", "T L ts srn rn ldt du dk"),
+             "head2": ("dk du L rows sig prc", "dks pdu pl"),
+             "head3": ("dks L pl rows prc", "pdks tr"),
+             "head4": ("pdu pdks tr wrow pl rn srn T ts xin xhat du ldt dk klt rows xe ldp", "dg dc dxh rowstat"),
              "latent_grad": ("wrow mu lv gz", "gmu glv")}[kind]
     return tuple({F[n] for n in s.split()} for s in names)
 
@@ -168,7 +168,7 @@ def emulate(inp: gmr_cuda.Inputs):
                     V = np.where(lower, f["c"] * T, 0) + np.eye(dU)
                     rn = np.sqrt(np.sum(V * V, axis=2))
                     srn = np.exp(log_sigma) / rn
-                    buf[F["T"]][:], buf[F["V"]][:] = T.reshape(bs, -1), V.reshape(bs, -1)
+                    buf[F["T"]][:] = T.reshape(bs, -1)
                     buf[F["L"]][:] = (srn[:, :, None] * V).reshape(bs, -1)
                     buf[F["ts"]][:], buf[F["srn"]][:], buf[F["rn"]][:] = tt, srn, rn
                     buf[F["ldt"]][:] = log_sigma - np.log(rn)
@@ -196,7 +196,8 @@ def emulate(inp: gmr_cuda.Inputs):
                     gG[:, :, :dX] += (rho * buf[F["pdks"]].reshape(bs, dU, dX)) * R.scale[:dX]
                     buf[F["dg"]][:, :NG] = gG.reshape(bs, -1)[:, :NG]
                     q = rho * buf[F["tr"]] + (-rho) * w[:, None]
-                    V, T = buf[F["V"]].reshape(bs, dU, dU), buf[F["T"]].reshape(bs, dU, dU)
+                    T = buf[F["T"]].reshape(bs, dU, dU)
+                    V = np.where(np.tril(np.ones((dU, dU), bool), -1), f["c"] * T, 0) + np.eye(dU)
                     rn, srn, tt = buf[F["rn"]], buf[F["srn"]], buf[F["ts"]]
                     gV = srn[:, :, None] * (rho * buf[F["pl"]].reshape(bs, dU, dU)) - (q / (rn * rn))[:, :, None] * V
                     lower = np.tril(np.ones((dU, dU), bool), -1)

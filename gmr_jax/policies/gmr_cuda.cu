@@ -42,8 +42,8 @@ enum TaskKind { GATHER = 0, FWD, INGRAD, WGRAD, LATENT, HEAD1, HEAD2, HEAD3, HEA
 // The fixed buffers (gmr_cuda.py FIXED_BUFFERS names them in this order).
 enum FixedBuffer {
   B_ROWS = 0, B_WROW, B_XIN, B_MU, B_LV, B_Z, B_KLT, B_XHAT, B_GOUT, B_COUT, B_DG, B_DC, B_DXH, B_GZ,
-  B_GMU, B_GLV, B_DK, B_DKS, B_PDKS, B_L, B_V, B_T, B_PL, B_TS, B_SRN, B_RN, B_DU, B_PDU, B_TR, B_LDT,
-  B_ROWSTAT, B_RED, N_FIXED
+  B_GMU, B_GLV, B_DK, B_DKS, B_PDKS, B_L, B_T, B_PL, B_TS, B_SRN, B_RN, B_DU, B_PDU, B_TR, B_LDT,
+  B_ROWSTAT, B_RED, B_SIG, B_PRC, B_XE, B_TGT, B_LDP, N_FIXED
 };
 
 // The program's header (ints); gmr_cuda.py HEADER names them in this order.
@@ -322,25 +322,61 @@ __device__ void latent_grad_item(const Ctx& c, int i) {
   buf(c, B_GLV)[r * ld(c, B_GLV) + j] = gz * e * (0.5f * expf(0.5f * lv)) + ct * (expf(lv) - 1.f);
 }
 
+__device__ __forceinline__ int pad4(int n) { return (n + 3) & ~3; }
+
+// The minibatch's rows: their indices, weights and encoder inputs, g_z ← 0, and the head's
+// per-row data (Σ_t, P, the head's input x̃, the target, log|P|) copied into shared memory four
+// floats at a time, so that the head's phases read no global memory.
 __device__ void gather_item(const Ctx& c, int i) {
-  const int bs = c.prog[H_BS], dX = c.prog[H_DX], X = c.prog[H_X], lat = c.prog[H_LAT];
+  const int bs = c.prog[H_BS], dX = c.prog[H_DX], dU = c.prog[H_DU], X = c.prog[H_X], U = c.prog[H_U];
+  const int* idx = c.a.idx + (long long)c.step * bs;
   if (i < bs * dX) {
     const int r = i / dX, j = i % dX;
-    const int row = c.a.idx[(long long)c.step * bs + r];
+    const int row = idx[r];
     buf(c, B_XIN)[r * ld(c, B_XIN) + j] = c.a.xn[(long long)row * X + j];
     if (j == 0) {
       buf(c, B_ROWS)[r] = __int_as_float(row);
       buf(c, B_WROW)[r] = c.a.wt[row];
+      buf(c, B_LDP)[r] = c.a.logdet[row];
     }
-  } else {
-    buf(c, B_GZ)[i - bs * dX] = 0.f;  // [bs, ld(gz)]
-    (void)lat;
+    return;
   }
+  i -= bs * dX;
+  const int ngz = bs * ld(c, B_GZ);
+  if (i < ngz) {
+    buf(c, B_GZ)[i] = 0.f;
+    return;
+  }
+  i -= ngz;
+  const int qx = pad4(dX) / 4, qu = pad4(dU) / 4, qe = pad4(dX + 1) / 4;
+  if (i < bs * dX * qx) {  // Σ_t: row j of dX entries (padded to a multiple of four)
+    const int r = i / (dX * qx), j = (i / qx) % dX, q = i % qx;
+    const float4 v = ld4(c.a.sig + ((long long)idx[r] * X + j) * X + 4 * q);
+    *reinterpret_cast<float4*>(buf(c, B_SIG) + r * ld(c, B_SIG) + j * pad4(dX) + 4 * q) = v;
+    return;
+  }
+  i -= bs * dX * qx;
+  if (i < bs * dU * qu) {  // P: row a of dU entries
+    const int r = i / (dU * qu), a = (i / qu) % dU, q = i % qu;
+    const float4 v = ld4(c.a.prc + ((long long)idx[r] * U + a) * U + 4 * q);
+    *reinterpret_cast<float4*>(buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU) + 4 * q) = v;
+    return;
+  }
+  i -= bs * dU * qu;
+  if (i < bs * qe) {  // x̃ with its constant 1
+    const int r = i / qe, q = i % qe;
+    *reinterpret_cast<float4*>(buf(c, B_XE) + r * ld(c, B_XE) + 4 * q) = ld4(c.a.xe + (long long)idx[r] * X + 4 * q);
+    return;
+  }
+  i -= bs * qe;
+  const int r = i / qu, q = i % qu;  // the target
+  *reinterpret_cast<float4*>(buf(c, B_TGT) + r * ld(c, B_TGT) + 4 * q) = ld4(c.a.tgt + (long long)idx[r] * U + 4 * q);
 }
 
 // ---------------------------------------------------------------- the head (gmr.fused_head)
 
-// Items (r, i), i < dU: row i of L and V, tanh of the diagonal, Δu_i, log σ_i − log‖V_i‖;
+// Items (r, i), i < dU: row i of L and of tanh(r/c) (V's strictly lower entries are c·tanh(r/c),
+// its diagonal 1), tanh of the diagonal, Δu_i, log σ_i − log‖V_i‖;
 // then items (r, i, j), j < dX: ΔK = G·diag(scale) − K.
 __device__ void head1_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
@@ -351,7 +387,6 @@ __device__ void head1_item(const Ctx& c, int i) {
     const float* G = buf(c, B_GOUT) + r * ld(c, B_GOUT);
     const float tt = tanhf(C[a * U + a] / f[F_S]);
     const float log_sigma = f[F_HALF_LOG_INIT_VAR] + f[F_S] * tt;
-    float* V = buf(c, B_V) + r * dU * dU + a * dU;
     float* T = buf(c, B_T) + r * dU * dU + a * dU;
     float ss = 0.f;
 #pragma unroll 4
@@ -359,21 +394,20 @@ __device__ void head1_item(const Ctx& c, int i) {
       const float Tb = tanhf(C[a * U + b] / f[F_C]);
       const float Vb = (b < a ? f[F_C] * Tb : 0.f) + (b == a ? 1.f : 0.f);
       T[b] = Tb;
-      V[b] = Vb;
       ss = fmaf(Vb, Vb, ss);
     }
     const float rn = sqrtf(ss), sigma = expf(log_sigma), srn = sigma / rn;
     float* Lr = buf(c, B_L) + r * dU * dU + a * dU;
-    for (int b = 0; b < dU; ++b) Lr[b] = srn * V[b];
+    for (int b = 0; b < dU; ++b) Lr[b] = srn * ((b < a ? f[F_C] * T[b] : 0.f) + (b == a ? 1.f : 0.f));
     buf(c, B_TS)[r * dU + a] = tt;
     buf(c, B_SRN)[r * dU + a] = srn;
     buf(c, B_RN)[r * dU + a] = rn;
     buf(c, B_LDT)[r * dU + a] = log_sigma - logf(rn);
-    const float* xe = c.a.xe + (long long)row * X;
+    const float* xe = buf(c, B_XE) + r * ld(c, B_XE);
     float du = 0.f;
     #pragma unroll 4
     for (int j = 0; j <= dX; ++j) du = fmaf(G[a * X + j], xe[j], du);
-    buf(c, B_DU)[r * dU + a] = du - c.a.tgt[(long long)row * U + a];
+    buf(c, B_DU)[r * dU + a] = du - buf(c, B_TGT)[r * ld(c, B_TGT) + a];
   } else {
     i -= bs * dU;
     const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
@@ -388,7 +422,7 @@ __device__ void head2_item(const Ctx& c, int i) {
   if (i < bs * dU * dX) {
     const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
     const float* dK = buf(c, B_DK) + r * dU * dX + a * dX;
-    const float* sg = c.a.sig + ((long long)row * X + j) * X;
+    const float* sg = buf(c, B_SIG) + r * ld(c, B_SIG) + j * pad4(dX);
     float s = 0.f;
     #pragma unroll 4
     for (int k = 0; k < dX; ++k) s = fmaf(dK[k], sg[k], s);
@@ -398,7 +432,7 @@ __device__ void head2_item(const Ctx& c, int i) {
   i -= bs * dU * dX;
   if (i < bs * dU) {
     const int r = i / dU, a = i % dU, row = row_of(c, r);
-    const float* P = c.a.prc + ((long long)row * U + a) * U;
+    const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
     const float* du = buf(c, B_DU) + r * dU;
     float s = 0.f;
     #pragma unroll 4
@@ -408,7 +442,7 @@ __device__ void head2_item(const Ctx& c, int i) {
   }
   i -= bs * dU;
   const int r = i / (dU * dU), a = (i / dU) % dU, b = i % dU, row = row_of(c, r);
-  const float* P = c.a.prc + ((long long)row * U + a) * U;
+  const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
   const float* L = buf(c, B_L) + r * dU * dU;
   float s = 0.f;
   #pragma unroll 4
@@ -421,7 +455,7 @@ __device__ void head3_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], U = c.prog[H_U], bs = c.prog[H_BS];
   if (i < bs * dU * dX) {
     const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
-    const float* P = c.a.prc + ((long long)row * U + a) * U;
+    const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
     const float* dKS = buf(c, B_DKS) + r * dU * dX;
     float s = 0.f;
     #pragma unroll 4
@@ -447,7 +481,7 @@ __device__ void head4_item(const Ctx& c, int i) {
   const float rho = f[F_RHO];
   if (i < bs * NG) {
     const int r = i / NG, n = i % NG, a = n / X, j = n % X, row = row_of(c, r);
-    const float xe = c.a.xe[(long long)row * X + j];
+    const float xe = buf(c, B_XE)[r * ld(c, B_XE) + j];
     float g = (rho * buf(c, B_PDU)[r * dU + a]) * xe;
     if (j < dX) g = g + (rho * buf(c, B_PDKS)[r * dU * dX + a * dX + j]) * c.a.scale[j];
     buf(c, B_DG)[r * ld(c, B_DG) + n] = g;
@@ -462,7 +496,7 @@ __device__ void head4_item(const Ctx& c, int i) {
       if (b < a) {
         const int e = r * dU * dU + a * dU + b;
         const float rn = buf(c, B_RN)[r * dU + a];
-        const float gV = buf(c, B_SRN)[r * dU + a] * (rho * buf(c, B_PL)[e]) - (q / (rn * rn)) * buf(c, B_V)[e];
+        const float gV = buf(c, B_SRN)[r * dU + a] * (rho * buf(c, B_PL)[e]) - (q / (rn * rn)) * (f[F_C] * buf(c, B_T)[e]);
         const float T = buf(c, B_T)[e];
         g = gV * (1.f - T * T);
       } else {
@@ -508,7 +542,7 @@ __device__ void head4_item(const Ctx& c, int i) {
   float* out = buf(c, B_ROWSTAT) + r * (NSTATS - 2);
   out[0] = action;
   out[1] = mse / f[F_DU];
-  out[2] = tr - w * (2.f * ldt + f[F_DU] + c.a.logdet[row]);
+  out[2] = tr - w * (2.f * ldt + f[F_DU] + buf(c, B_LDP)[r]);
   out[3] = gain;
   out[4] = w * 0.5f * kl;
   out[5] = w * recon;

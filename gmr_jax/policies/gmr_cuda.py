@@ -55,8 +55,8 @@ STATS = gmr_kernel.STATS
 # The names below list the .cu file's enums in their order (tests/test_gmr_cuda.py checks it).
 TASKS = ("gather", "fwd", "ingrad", "wgrad", "latent", "head1", "head2", "head3", "head4", "latent_grad")
 FIXED_BUFFERS = ("rows", "wrow", "xin", "mu", "lv", "z", "klt", "xhat", "gout", "cout", "dg", "dc", "dxh", "gz",
-                 "gmu", "glv", "dk", "dks", "pdks", "L", "V", "T", "pl", "ts", "srn", "rn", "du", "pdu", "tr",
-                 "ldt", "rowstat", "red")
+                 "gmu", "glv", "dk", "dks", "pdks", "L", "T", "pl", "ts", "srn", "rn", "du", "pdu", "tr",
+                 "ldt", "rowstat", "red", "sig", "prc", "xe", "tgt", "ldp")
 HEADER = ("dX", "dU", "X", "U", "lat", "bs", "B", "n_theta", "stats_from", "n_layers", "n_bufs", "n_tasks",
           "n_phases", "layers", "bufs", "tasks", "phases", "theta_smem", "l_gain", "l_chol", "l_xhat", "cycles",
           "program")
@@ -64,6 +64,11 @@ FLOATS = ("slope", "alpha", "s", "c", "half_log_init_var", "rho", "lr", "b1", "o
           "one_minus_b2", "eps", "wd", "dU")
 TASK_INTS = 9
 SMEM_LIMIT = 227 * 1024  # an H100's / H200's dynamic shared memory per block
+
+
+def pad4(n: int) -> int:
+    """n rounded up to a multiple of four."""
+    return -(-n // 4) * 4
 
 
 class CompactLayer(NamedTuple):
@@ -124,23 +129,29 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
     # buffers: (name, floats, leading dimension); a product reads the rows of its operands four
     # floats at a time, so their rows are padded to a multiple of four
     def rows4(width):
-        width = -(-width // 4) * 4
-        return bs * width, width
+        return bs * pad4(width), pad4(width)
     fixed = {"rows": (bs, 1), "wrow": (bs, 1), "xin": rows4(dX), "mu": (bs * lat, lat), "lv": (bs * lat, lat),
              "z": rows4(lat), "klt": (bs * lat, lat), "xhat": (bs * dX, dX), "gout": (bs * NG, NG),
              "cout": (bs * NC, NC), "dg": rows4(NG), "dc": rows4(NC), "dxh": rows4(dX),
              "gz": rows4(lat), "gmu": rows4(lat), "glv": rows4(lat)}
     fixed.update({k: (bs * dU * dX, dU * dX) for k in ("dk", "dks", "pdks")})
-    fixed.update({k: (bs * dU * dU, dU * dU) for k in ("L", "V", "T", "pl")})
+    fixed.update({k: (bs * dU * dU, dU * dU) for k in ("L", "T", "pl")})
     fixed.update({k: (bs * dU, dU) for k in ("ts", "srn", "rn", "du", "pdu", "tr", "ldt")})
     fixed.update({"rowstat": (bs * (len(STATS) - 2), len(STATS) - 2), "red": (THREADS // 32, 1)})
+    # the head's per-row data, copied by the gather: Σ_t and P row by row, each row padded to a
+    # multiple of four floats; x̃ (with its constant 1); the target; log|P|
+    fixed.update({"sig": (bs * dX * pad4(dX), dX * pad4(dX)), "prc": (bs * dU * pad4(dU), dU * pad4(dU)),
+                  "xe": rows4(dX + 1), "tgt": rows4(dU), "ldp": (bs, 1)})
     assert tuple(fixed) == FIXED_BUFFERS
     buffers = [(name, *fixed[name]) for name in FIXED_BUFFERS]
     bid = {name: i for i, name in enumerate(FIXED_BUFFERS)}
 
+    bufs_width = {}
+
     def new_buffer(name, width):
         bid[name] = len(buffers)
         buffers.append((name, *rows4(width)))
+        bufs_width[bid[name]] = width
         return bid[name]
 
     # [phases + 1] doubles: the kernel's profile (clock cycles per phase); its size is set below
@@ -150,12 +161,19 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
     if not (enc and dec and trans):
         raise ValueError("sstep impl='cuda' needs a hidden layer in each of GMR's three networks: use impl='packed'")
     h = {name: new_buffer("h_" + name, by_name[name].N) for name in enc + dec + trans}
-    d = {}
-    for net in (enc, dec, trans):  # three rotating cotangent buffers per network
-        if net:
-            width = max(by_name[n].N for n in net)
-            slots = [new_buffer(f"d_{net[0]}_{i}", width) for i in range(min(3, len(net)))]
-            d.update({name: slots[i % 3] for i, name in enumerate(net)})
+    d, done = {}, []
+    for net in (dec, trans, enc):  # up to three rotating cotangent buffers per network
+        width = max(by_name[n].N for n in net)
+        need = min(3, len(net))
+        if net is enc:
+            # the encoder's backward pass starts after the other two networks' have ended: it
+            # takes over their buffers where they are wide enough
+            reuse = [b for b in done if bufs_width[b] >= width][:need]
+        else:
+            reuse = []
+        slots = reuse + [new_buffer(f"d_{net[0]}_{i}", width) for i in range(len(reuse), need)]
+        done += slots
+        d.update({name: slots[i % 3] for i, name in enumerate(net)})
 
     def task(kind, items, *args):
         return (TASKS.index(kind), int(items), list(args) + [-1] * (TASK_INTS - 2 - len(args)))
@@ -172,7 +190,9 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
         L = by_name[name]
         return task("wgrad", L.N * -(-(L.K + 1) // WEIGHT_ROWS_PER_ITEM), lid[name], src, dd)
 
-    phases = [[task("gather", bs * dX + fixed["gz"][0])]]
+    gather_items = (bs * dX + fixed["gz"][0] + bs * dX * pad4(dX) // 4 + bs * dU * pad4(dU) // 4
+                    + bs * pad4(dX + 1) // 4 + bs * pad4(dU) // 4)
+    phases = [[task("gather", gather_items)]]
     src = bid["xin"]
     for name in enc:
         phases.append([fwd(name, src, h[name], True)])
