@@ -382,7 +382,7 @@ __device__ void head1_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
   const float* f = c.f;
   if (i < bs * dU) {
-    const int r = i / dU, a = i % dU, row = row_of(c, r);
+    const int r = i / dU, a = i % dU;
     const float* C = buf(c, B_COUT) + r * ld(c, B_COUT);
     const float* G = buf(c, B_GOUT) + r * ld(c, B_GOUT);
     const float tt = tanhf(C[a * U + a] / f[F_S]);
@@ -418,9 +418,9 @@ __device__ void head1_item(const Ctx& c, int i) {
 
 // ΔK Σ (r, i, j < dX); P Δu (r, i); P L (r, i, j < dU).
 __device__ void head2_item(const Ctx& c, int i) {
-  const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
+  const int dU = c.prog[H_DU], dX = c.prog[H_DX], bs = c.prog[H_BS];
   if (i < bs * dU * dX) {
-    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
+    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX;
     const float* dK = buf(c, B_DK) + r * dU * dX + a * dX;
     const float* sg = buf(c, B_SIG) + r * ld(c, B_SIG) + j * pad4(dX);
     float s = 0.f;
@@ -431,7 +431,7 @@ __device__ void head2_item(const Ctx& c, int i) {
   }
   i -= bs * dU * dX;
   if (i < bs * dU) {
-    const int r = i / dU, a = i % dU, row = row_of(c, r);
+    const int r = i / dU, a = i % dU;
     const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
     const float* du = buf(c, B_DU) + r * dU;
     float s = 0.f;
@@ -441,7 +441,7 @@ __device__ void head2_item(const Ctx& c, int i) {
     return;
   }
   i -= bs * dU;
-  const int r = i / (dU * dU), a = (i / dU) % dU, b = i % dU, row = row_of(c, r);
+  const int r = i / (dU * dU), a = (i / dU) % dU, b = i % dU;
   const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
   const float* L = buf(c, B_L) + r * dU * dU;
   float s = 0.f;
@@ -452,9 +452,9 @@ __device__ void head2_item(const Ctx& c, int i) {
 
 // P ΔK Σ (r, i, j < dX); the rows of tr(Lᵀ P L) (r, i).
 __device__ void head3_item(const Ctx& c, int i) {
-  const int dU = c.prog[H_DU], dX = c.prog[H_DX], U = c.prog[H_U], bs = c.prog[H_BS];
+  const int dU = c.prog[H_DU], dX = c.prog[H_DX], bs = c.prog[H_BS];
   if (i < bs * dU * dX) {
-    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
+    const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX;
     const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
     const float* dKS = buf(c, B_DKS) + r * dU * dX;
     float s = 0.f;
@@ -480,7 +480,7 @@ __device__ void head4_item(const Ctx& c, int i) {
   const float* f = c.f;
   const float rho = f[F_RHO];
   if (i < bs * NG) {
-    const int r = i / NG, n = i % NG, a = n / X, j = n % X, row = row_of(c, r);
+    const int r = i / NG, n = i % NG, a = n / X, j = n % X;
     const float xe = buf(c, B_XE)[r * ld(c, B_XE) + j];
     float g = (rho * buf(c, B_PDU)[r * dU + a]) * xe;
     if (j < dX) g = g + (rho * buf(c, B_PDKS)[r * dU * dX + a * dX + j]) * c.a.scale[j];
@@ -517,7 +517,7 @@ __device__ void head4_item(const Ctx& c, int i) {
   }
   // the row's loss terms, in STATS order after total and value:
   // action, action_mse, cov, gain, latent_kl, recon
-  const int r = i - bs * dX, row = row_of(c, r), lat = c.prog[H_LAT];
+  const int r = i - bs * dX, lat = c.prog[H_LAT];
   const float w = buf(c, B_WROW)[r];
   const float* du = buf(c, B_DU) + r * dU;
   const float* pdu = buf(c, B_PDU) + r * dU;
