@@ -416,6 +416,16 @@ __device__ void head1_item(const Ctx& c, int i) {
   }
 }
 
+// Σ_k P[a, k] Y[k, j]: row a of row r's P (shared memory) times column j of Y [dU, cols].
+__device__ __forceinline__ float p_row_times(const Ctx& c, int r, int a, const float* Y, int cols, int j) {
+  const int dU = c.prog[H_DU];
+  const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
+  float s = 0.f;
+#pragma unroll 4
+  for (int k = 0; k < dU; ++k) s = fmaf(P[k], Y[k * cols + j], s);
+  return s;
+}
+
 // ΔK Σ (r, i, j < dX); P Δu (r, i); P L (r, i, j < dU).
 __device__ void head2_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], bs = c.prog[H_BS];
@@ -442,12 +452,7 @@ __device__ void head2_item(const Ctx& c, int i) {
   }
   i -= bs * dU;
   const int r = i / (dU * dU), a = (i / dU) % dU, b = i % dU;
-  const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
-  const float* L = buf(c, B_L) + r * dU * dU;
-  float s = 0.f;
-  #pragma unroll 4
-  for (int k = 0; k < dU; ++k) s = fmaf(P[k], L[k * dU + b], s);
-  buf(c, B_PL)[r * dU * dU + a * dU + b] = s;
+  buf(c, B_PL)[r * dU * dU + a * dU + b] = p_row_times(c, r, a, buf(c, B_L) + r * dU * dU, dU, b);
 }
 
 // P ΔK Σ (r, i, j < dX); the rows of tr(Lᵀ P L) (r, i).
@@ -455,12 +460,7 @@ __device__ void head3_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], bs = c.prog[H_BS];
   if (i < bs * dU * dX) {
     const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX;
-    const float* P = buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU);
-    const float* dKS = buf(c, B_DKS) + r * dU * dX;
-    float s = 0.f;
-    #pragma unroll 4
-    for (int k = 0; k < dU; ++k) s = fmaf(P[k], dKS[k * dX + j], s);
-    buf(c, B_PDKS)[r * dU * dX + a * dX + j] = s;
+    buf(c, B_PDKS)[r * dU * dX + a * dX + j] = p_row_times(c, r, a, buf(c, B_DKS) + r * dU * dX, dX, j);
     return;
   }
   i -= bs * dU * dX;
