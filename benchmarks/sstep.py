@@ -19,6 +19,9 @@ epoch only and of every epoch (``SStepConfig.statistics_epochs``). ``--profile D
 GPU's view (``benchmarks.trace``): kernels per Adam step, the device's busy and idle time, the
 costliest kernels.
 
+``--impl packed,cuda`` times GMR's hand-written CUDA kernel (``impl="cuda"``, nvcc needed) beside
+the packed form and adds, to the JSON and the printout, the kernel's own clock cycles per phase of
+its program as µs per Adam step (``cuda_phases``: their shares of the measured step).
 ``--impl packed,reference`` times the S-step's packed form (``gmr_jax.sstep`` ``impl="packed"``,
 the default on a GPU; the benchmark's default) beside the reference form it is tested against
 (autodiff of the policy's loss in a loop per epoch; the default on a CPU), in the same run.

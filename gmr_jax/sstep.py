@@ -23,7 +23,9 @@ step as a kernel, and each dependent kernel costs about 1.7 µs on an H100 howev
 computes (``benchmarks/kernel_floor.py``), so the packed form's far fewer operations (GMR: about
 half) are what makes it faster there; on a CPU, where
 a step costs arithmetic and memory traffic instead, its zero padding makes it slower, so the
-backend picks the default (``default_impl``).
+backend picks the default (``default_impl``). GMR also has two single-kernel forms, opt-in:
+"kernel" (Pallas) and "cuda" (hand-written CUDA through the XLA FFI, ``policies/gmr_cuda.py``),
+each every minibatch step of an S-step in one GPU launch, equal to the packed form to round-off.
 """
 
 from __future__ import annotations

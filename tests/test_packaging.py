@@ -52,6 +52,8 @@ def test_wheel_ships_the_mjcf_and_loads_the_reach_scene(tmp_path):
     assert xmls, "no MJCF files in jaco_mjcf/"
     missing = [x for x in xmls if f"gmr_jax/jaco_mjcf/{x}" not in names]
     assert not missing, f"MJCF files missing from the wheel: {missing}"
+    # the CUDA S-step's source, which gmr_cuda builds with nvcc on first use
+    assert "gmr_jax/policies/gmr_cuda.cu" in names
     # pyproject.toml lists the packages (a mapped package cannot come from packages.find): every
     # package of the repository must be in the wheel.
     packages = [p.parent.relative_to(REPO).as_posix() for top in ("gmr_jax", "experiments")
