@@ -481,7 +481,7 @@ __device__ void head4_item(const Ctx& c, int i) {
   const float rho = f[F_RHO];
   if (i < bs * NG) {
     const int r = i / NG, n = i % NG, a = n / X, j = n % X;
-    const float xe = buf(c, B_XE)[r * ld(c, B_XE) + j];
+    const float xe = j <= dX ? buf(c, B_XE)[r * ld(c, B_XE) + j] : 0.f;  // x̃ is zero beyond its 1
     float g = (rho * buf(c, B_PDU)[r * dU + a]) * xe;
     if (j < dX) g = g + (rho * buf(c, B_PDKS)[r * dU * dX + a * dX + j]) * c.a.scale[j];
     buf(c, B_DG)[r * ld(c, B_DG) + n] = g;
@@ -689,6 +689,8 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
   const long long per = (long long)dims[dims.size() - 1] * (long long)dims[dims.size() - 2];
   const long long seeds = per > 0 ? (long long)idx.element_count() / per : 0;
   if (seeds < 1 || steps < 1) return ffi::Error::InvalidArgument("gmr_sstep_cuda: no seeds or no steps");
+  if ((long long)dims[dims.size() - 2] != steps)
+    return ffi::Error::InvalidArgument("gmr_sstep_cuda: idx's steps differ from the steps attribute");
   Args a{};
   a.idx = idx.typed_data<int32_t>(); a.eps = eps.typed_data<float>(); a.c1 = c1.typed_data<float>();
   a.c2 = c2.typed_data<float>(); a.xn = xn.typed_data<float>(); a.xe = xe.typed_data<float>();

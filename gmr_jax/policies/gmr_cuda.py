@@ -39,8 +39,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import jaxlib
 import numpy as np
 
+from gmr_jax import sharding
 from gmr_jax.config import GMRConfig, SStepConfig
 from gmr_jax.policies import gmr_kernel
 from gmr_jax.policies.base import PolicyParams
@@ -317,8 +319,9 @@ def check_supported(cfg: GMRConfig, dtype):
     if cfg.negative_slope <= 0:
         raise ValueError(f"sstep impl='cuda' needs gmr.negative_slope > 0 (got {cfg.negative_slope}): it reads the "
                          "leaky ReLU's derivative off the layer's output; use impl='packed'")
-    if jax.default_backend() != "gpu":
-        raise ValueError(f"sstep impl='cuda' needs an NVIDIA GPU (JAX's backend is {jax.default_backend()}): "
+    platform = sharding.target_platform()
+    if platform not in ("gpu", "cuda"):
+        raise ValueError(f"sstep impl='cuda' needs an NVIDIA GPU (the program runs on {platform}): "
                          "use impl='packed' or 'reference'")
 
 
@@ -333,7 +336,8 @@ def build(out: Path, flags: list[str] | None = None) -> str:
     compiler's messages."""
     nvcc = shutil.which("nvcc")
     if nvcc is None:
-        raise RuntimeError("sstep impl='cuda' needs nvcc (the CUDA toolkit) on PATH to build its kernel")
+        raise RuntimeError("sstep impl='cuda' needs nvcc (the CUDA toolkit) on PATH to build its kernel: "
+                           "install it or use impl='packed'")
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=out.parent, suffix=".so", delete=False) as tmp:
         pass
@@ -341,7 +345,8 @@ def build(out: Path, flags: list[str] | None = None) -> str:
         res = subprocess.run([nvcc, *(flags or _nvcc_flags()), "-o", tmp.name, str(SOURCE)],
                              capture_output=True, text=True)
         if res.returncode != 0:
-            raise RuntimeError(f"nvcc failed on {SOURCE.name}:\n{res.stderr[-4000:]}")
+            raise RuntimeError(f"nvcc failed on {SOURCE.name} (use impl='packed'); its messages:\n"
+                               f"{res.stderr[-4000:]}")
         os.replace(tmp.name, out)
     finally:
         if os.path.exists(tmp.name):
@@ -354,7 +359,12 @@ def library() -> ctypes.CDLL:
     """The built library (built on first use, then cached on disk), its FFI target registered."""
     nvcc = shutil.which("nvcc")
     version = subprocess.run([nvcc, "--version"], capture_output=True, text=True).stdout if nvcc else ""
-    key = hashlib.sha256(SOURCE.read_bytes() + version.encode() + " ".join(_nvcc_flags()).encode()).hexdigest()[:16]
+    # "-arch=native" names no architecture: the GPU's compute capability and the FFI headers'
+    # jaxlib go into the name too, so that a cache shared between machines or kept over an
+    # upgrade never hands out another build
+    gpu = getattr(jax.devices()[0], "compute_capability", "")
+    extra = f"{gpu} {jaxlib.__version__} {' '.join(_nvcc_flags())}"
+    key = hashlib.sha256(SOURCE.read_bytes() + version.encode() + extra.encode()).hexdigest()[:16]
     cache = Path(os.environ.get("GMR_JAX_CUDA_CACHE", Path.home() / ".cache" / "gmr_jax" / "cuda"))
     so = cache / f"gmr_cuda_{key}.so"
     if not so.exists():
