@@ -83,9 +83,10 @@ def emulate(inp: gmr_cuda.Inputs, smem_bytes: int):
 
     Shared memory is one flat array laid out by the program (θ's layers with their strides, every
     buffer at its offset with its leading dimension), so that buffers that share memory share it
-    here too. The gather, the latent state and the head's tasks are the .cu file's item functions
-    line by line, with its index formulas (an index that reads past a row reads what lies there);
-    the products run on whole buffers (their items read within rows)."""
+    here too. Every task is the .cu file's item function line by line, with its index formulas (an
+    index that reads past a row reads what lies there), run item by item as the kernel walks a
+    phase's items over its tasks (the program's item counts); a product item's sums over k or
+    rows run as one dot product (the same terms, in float64 round-off of another order)."""
     P = np.asarray(inp.program)
     h = dict(zip(gmr_cuda.HEADER, P[:len(gmr_cuda.HEADER)].tolist()))
     dt = np.asarray(inp.theta0).dtype
@@ -297,58 +298,85 @@ def emulate(inp: gmr_cuda.Inputs, smem_bytes: int):
                             np.sum(tr) - w * (2 * np.sum(ldt) + f["dU"] + sm[B("ldp", r)]),
                             np.sum(dK * pdks), w * dt.type(0.5) * np.sum(klt), w * np.sum((xin - xhat) ** 2)]
 
-    def adam(lay, g, step):
-        coff, _, K, N, _ = (int(x) for x in layers[lay])
-        sl = slice(coff, coff + (K + 1) * N)
-        W = weights(lay)
-        th = W.reshape(-1).copy()
-        g = g + f["wd"] * (2 * th)
-        m[sl] = f["one_minus_b1"] * g + f["b1"] * m[sl]
-        v[sl] = f["one_minus_b2"] * (g * g) + f["b2"] * v[sl]
-        # the kernel's form of Adam's update: the corrections as reciprocals, one division
+    RG, KG = gmr_cuda.ROWS_PER_ITEM, gmr_cuda.WEIGHT_ROWS_PER_ITEM
+
+    def row(b, r, n):  # entries [0, n) of row r of buffer b
+        return sm[off(b) + r * ld(b): off(b) + r * ld(b) + n]
+
+    def fwd(a, i):
+        _, soff, K, N, S = (int(x) for x in layers[a[0]])
+        n, r0 = i % N, (i // N) * RG
+        w = sm[soff + n: soff + K * S + n: S]  # W[k * S + n], k < K
+        for j in range(RG):
+            if r0 + j < bs:
+                pre = row(a[1], min(r0 + j, bs - 1), K) @ w + sm[soff + K * S + n]
+                sm[off(a[2]) + (r0 + j) * ld(a[2]) + n] = leaky(pre) if a[3] else pre
+
+    def transposed_product(lay, d, k, r0):
+        _, soff, _, N, S = (int(x) for x in layers[lay])
+        w = sm[soff + k * S: soff + k * S + N]
+        return [row(d, min(r0 + j, bs - 1), N) @ w for j in range(RG)]
+
+    def ingrad(a, i):
+        K = int(layers[a[0]][2])
+        k, r0 = i % K, (i // K) * RG
+        acc = transposed_product(a[0], a[1], k, r0)
+        acc2 = transposed_product(a[2], a[3], k, r0) if a[2] >= 0 else None
+        for j in range(RG):
+            r = r0 + j
+            if r >= bs:
+                continue
+            g = acc[j] + acc2[j] if a[2] >= 0 else acc[j]
+            out = off(a[4]) + r * ld(a[4]) + k
+            if a[6]:
+                g = sm[out] + g
+            if a[5] >= 0:
+                g = g if sm[off(a[5]) + r * ld(a[5]) + k] >= 0 else slope * g
+            sm[out] = g
+
+    def wgrad(a, i, step):
+        coff, soff, K, N, S = (int(x) for x in layers[a[0]])
+        n, k0 = i % N, (i // N) * KG
+        g0 = coff + k0 * N + n
+        hs = lambda k: sm[off(a[1]) + k: off(a[1]) + (bs - 1) * ld(a[1]) + k + 1: ld(a[1])]  # noqa: E731
+        D = sm[off(a[2]) + n: off(a[2]) + (bs - 1) * ld(a[2]) + n + 1: ld(a[2])]
+        if k0 + KG <= K:
+            acc = [hs(k0 + q) @ D for q in range(KG)]
+        else:
+            acc = [hs(k) @ D if k < K else (np.sum(D) if k == K else 0) for k in range(k0, k0 + KG)]
+        l2 = dt.type(0)
         rc1, rc2 = 1 / c1[step], 1 / c2[step]
-        W[:] = (th + -f["lr"] * ((m[sl] * rc1) / (np.sqrt(v[sl] * rc2) + f["eps"]))).reshape(K + 1, N)
-        return np.sum(th * th)
+        for q in range(KG):
+            k = k0 + q
+            if k <= K:
+                e, pos = g0 + q * N, soff + k * S + n
+                th = sm[pos]
+                l2 += th * th
+                g = acc[q] + f["wd"] * (2 * th)
+                m[e] = f["one_minus_b1"] * g + f["b1"] * m[e]
+                v[e] = f["one_minus_b2"] * (g * g) + f["b2"] * v[e]
+                # the kernel's form of Adam's update: the corrections as reciprocals, one division
+                sm[pos] = th + -f["lr"] * ((m[e] * rc1) / (np.sqrt(v[e] * rc2) + f["eps"]))
+        return l2
 
     stats = np.zeros((len(idx), len(gmr_cuda.STATS)), dt)
-    items = {"gather": gather, "head1": head1, "head2": head2, "head3": head3, "head4": head4}
     for step in range(len(idx)):
         l2 = dt.type(0)
-        for first, count, _ in phases:
-            for t in tasks[first: first + count]:
-                kind, n_items, a = gmr_cuda.TASKS[t[0]], int(t[1]), [int(x) for x in t[2:]]
-                if kind in items:
-                    for i in range(n_items):
-                        (items[kind](step, i) if kind == "gather" else items[kind](i))
-                elif kind == "latent":
-                    for i in range(n_items):
-                        latent(step, a, i)
-                elif kind == "latent_grad":
-                    for i in range(n_items):
-                        latent_grad(step, i)
-                elif kind == "fwd":
-                    W = weights(a[0])
-                    K, N = W.shape[0] - 1, W.shape[1]
-                    pre = view(a[1])[:, :K] @ W[:K] + W[K]
-                    view(a[2])[:, :N] = leaky(pre) if a[3] else pre
-                elif kind == "ingrad":
-                    W = weights(a[0])
-                    K = W.shape[0] - 1
-                    g = view(a[1])[:, :W.shape[1]] @ W[:K].T
-                    if a[2] >= 0:
-                        W2 = weights(a[2])
-                        g = g + view(a[3])[:, :W2.shape[1]] @ W2[:K].T
-                    if a[6]:
-                        g = view(a[4])[:, :K] + g
-                    if a[5] >= 0:
-                        g = np.where(view(a[5])[:, :K] >= 0, g, slope * g)
-                    view(a[4])[:, :K] = g
-                elif kind == "wgrad":
-                    W = weights(a[0])
-                    K, N = W.shape[0] - 1, W.shape[1]
-                    D = view(a[2])[:, :N]
-                    g = np.concatenate([view(a[1])[:, :K].T @ D, D.sum(0)[None]]).reshape(-1)
-                    l2 += adam(a[0], g, step)
+        items = {"gather": lambda a, i: gather(step, i), "fwd": fwd, "ingrad": ingrad,
+                 "latent": lambda a, i: latent(step, a, i), "head1": lambda a, i: head1(i),
+                 "head2": lambda a, i: head2(i), "head3": lambda a, i: head3(i), "head4": lambda a, i: head4(i),
+                 "latent_grad": lambda a, i: latent_grad(step, i)}
+        for first, _, total in phases:
+            for i in range(total):  # the kernel's walk: item i of the phase -> its task and the item in it
+                t, base = first, 0
+                while i >= base + tasks[t][1]:
+                    base += tasks[t][1]
+                    t += 1
+                kind, a = gmr_cuda.TASKS[tasks[t][0]], [int(x) for x in tasks[t][2:]]
+                if kind == "wgrad":
+                    l2 += wgrad(a, i - base, step)
+                else:
+                    items[kind](a, i - base)
         if step >= h["stats_from"]:
             aux = np.sum(f["rho"] * view(F["rowstat"])[:, :6], axis=0)
             aux[[0, 2, 3]] *= 0.5
