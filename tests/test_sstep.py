@@ -347,9 +347,10 @@ def test_training_form_gradient_equals_autodiff(name):
     assert padding.any() and np.all(np.asarray(grad)[padding] == 0.0)
 
 
-def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype, run=_sstep):
+def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype, run=_sstep, batch_size: int = 20):
     """Two forms' S-steps (``run``: the jitted ``sstep``) from the same params, data and key
-    (float64: 3 epochs, unroll 2; float32: 2 epochs); asserts the weights' bound 8·δ·lr·S
+    (float64: 3 epochs, unroll 2; float32: 2 epochs; minibatches of ``batch_size`` rows);
+    asserts the weights' bound 8·δ·lr·S
     (``test_packed_sstep_equals_reference``) and the dtypes, and that the weights moved; returns
     (new form's metrics, reference metrics, δ)."""
     pol, cfg = _policy(name)
@@ -357,8 +358,8 @@ def _forms_agree(name: str, ref_impl: str, new_impl: str, dtype, run=_sstep):
     data = jax.tree_util.tree_map(lambda a: a.astype(dtype), _full_data(12 if wide else 13))
     params = pol.init(jax.random.key(2), dX, dU, dtype)
     # every epoch's statistics, so that the forms' curves are compared, not only their last epochs
-    scfg = (SStepConfig(epochs=3, batch_size=20, unroll=2, statistics_epochs="all") if wide
-            else SStepConfig(epochs=2, batch_size=20, statistics_epochs="all"))
+    scfg = (SStepConfig(epochs=3, batch_size=batch_size, unroll=2, statistics_epochs="all") if wide
+            else SStepConfig(epochs=2, batch_size=batch_size, statistics_epochs="all"))
     ref, ref_m = run(pol, params, data, jax.random.key(3), scfg, impl=ref_impl)
     new, new_m = run(pol, params, data, jax.random.key(3), scfg, impl=new_impl)
     delta = _n_path(cfg, scfg.batch_size) * EPS[jnp.dtype(dtype)]

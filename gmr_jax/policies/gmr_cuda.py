@@ -184,6 +184,9 @@ def program(cfg: GMRConfig, lay: gmr_kernel.Layout, batch_size: int, rows: int, 
         return task("fwd", by_name[name].N * rg, lid[name], src, dst, int(act))
 
     def ingrad(sources, dst, mask, accumulate):
+        # an INGRAD task sums the products of at most two layers (each network has a hidden
+        # layer, so at most two meet at g_z, and each top has two outputs)
+        assert 1 <= len(sources) <= 2, sources
         (l1, d1), (l2, d2) = sources[0], (sources[1] if len(sources) > 1 else (None, -1))
         return task("ingrad", by_name[l1].K * rg, lid[l1], d1, -1 if l2 is None else lid[l2], d2, dst, mask,
                     int(accumulate))
