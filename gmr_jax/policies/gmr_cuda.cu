@@ -32,9 +32,9 @@ namespace ffi = xla::ffi;
 
 namespace {
 
-constexpr int NT = 512;   // threads per block
+constexpr int NT = 1024;  // threads per block
 constexpr int RG = 4;     // rows per item of FWD and INGRAD
-constexpr int KG = 8;     // weight rows per item of WGRAD (a multiple of 4)
+constexpr int KG = 4;     // weight rows per item of WGRAD (a multiple of 4)
 constexpr int NSTATS = 8; // total, value, action, action_mse, cov, gain, latent_kl, recon
 
 enum TaskKind { GATHER = 0, FWD, INGRAD, WGRAD, LATENT, HEAD1, HEAD2, HEAD3, HEAD4, LATENT_GRAD };

@@ -49,9 +49,9 @@ from gmr_jax.policies.base import PolicyParams
 
 SOURCE = Path(__file__).with_name("gmr_cuda.cu")
 TARGET = "gmr_sstep_cuda"
-THREADS = 512  # NT in the .cu file
+THREADS = 1024  # NT in the .cu file
 ROWS_PER_ITEM = 4  # RG
-WEIGHT_ROWS_PER_ITEM = 8  # KG
+WEIGHT_ROWS_PER_ITEM = 4  # KG
 STATS = gmr_kernel.STATS
 
 # The names below list the .cu file's enums in their order (tests/test_gmr_cuda.py checks it).
