@@ -2,6 +2,8 @@
 generator, and one runner scheduler."""
 
 import ctypes.util
+import importlib.metadata
+import importlib.util
 import os
 import re
 import sys
@@ -22,6 +24,11 @@ import sys
 _TEST_FLAGS = {"xla_force_host_platform_device_count": "4",
                "xla_backend_optimization_level": "0",
                "xla_cpu_use_fusion_emitters": "false"}
+# A GPU plugin's XLA (jax-cuda12/13-plugin: the ``jax_plugins`` namespace or entry points) parses
+# XLA_FLAGS too and aborts on a flag it does not know, the CPU code generator's included, before a
+# test runs. The GPU-only tests (run by hand on a GPU) then keep XLA's default CPU code generator.
+if importlib.util.find_spec("jax_plugins") is not None or importlib.metadata.entry_points(group="jax_plugins"):
+    del _TEST_FLAGS["xla_cpu_use_fusion_emitters"]
 _FLAGS = os.environ.get("XLA_FLAGS", "")
 os.environ["XLA_FLAGS"] = " ".join([_FLAGS] + [f"--{name}={value}" for name, value in _TEST_FLAGS.items()
                                                if not re.search(rf"--{name}(=|\s|$)", _FLAGS)]).strip()
