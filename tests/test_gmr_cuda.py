@@ -501,11 +501,36 @@ def test_cuda_form_refuses_what_it_does_not_run():
                          20, 960, 0)
 
 
+def test_ablations_are_the_cu_files_macros_and_bad_names_are_one_line(monkeypatch):
+    """Each of ``ABLATIONS`` is a macro of the .cu file that the build's flags define when
+    ``$GMR_JAX_CUDA_ABLATE`` names it (and only then: the training build has none); an unknown
+    name is one clear error, in the library and in the benchmark's variants."""
+    from benchmarks import sstep_ablation
+
+    used = set(re.findall(r"^#ifn?def GMR_CUDA_ABLATE_(\w+)$", CU, re.M))
+    listed = set(re.findall(r"^//   ([A-Z_]+) ", CU.split("// Ablations")[1].split("#include")[0], re.M))
+    assert used == listed == {n.upper() for n in gmr_cuda.ABLATIONS}
+    monkeypatch.delenv("GMR_JAX_CUDA_ABLATE", raising=False)
+    assert gmr_cuda.ablations() == ()
+    assert not any("ABLATE" in f for f in gmr_cuda._nvcc_flags())
+    monkeypatch.setenv("GMR_JAX_CUDA_ABLATE", "head+moments, moments")
+    assert gmr_cuda.ablations() == ("moments", "head")
+    assert [f for f in gmr_cuda._nvcc_flags() if "ABLATE" in f] == ["-DGMR_CUDA_ABLATE_MOMENTS", "-DGMR_CUDA_ABLATE_HEAD"]
+    monkeypatch.setenv("GMR_JAX_CUDA_ABLATE", "moments,adam")
+    with pytest.raises(ValueError, match="GMR_JAX_CUDA_ABLATE names adam: the ablations are moments"):
+        gmr_cuda.ablations()
+    assert sstep_ablation.parse_variant("none") == ()
+    assert sstep_ablation.parse_variant("all") == gmr_cuda.ABLATIONS
+    assert sstep_ablation.parse_variant("moments+head") == ("moments", "head")
+    with pytest.raises(SystemExit, match="unknown ablation 'sums'"):
+        sstep_ablation.parse_variant("moments+sums")
+
+
 @pytest.mark.skipif(shutil.which("nvcc") is None, reason="needs nvcc")
 def test_kernel_builds_for_hopper_without_spills(tmp_path):
     """The .cu file's device code compiles for sm_90 (with the FFI's headers) and its kernel
     spills no registers (a spill would put the step's accumulators in local memory). The host
-    code (the FFI handler) is built with the library, by the GPU-only test below."""
+    code (the FFI handler) is built with the library, by the GPU-only test."""
     out = tmp_path / "gmr_cuda.cubin"  # the device code alone: ptxas's report is that of the library's build
     host = ("-shared", "-Xcompiler", "-fPIC")
     flags = [f for f in gmr_cuda._nvcc_flags() if not f.startswith("-arch") and f not in host]

@@ -21,6 +21,16 @@
 // The arithmetic is that of gmr_kernel.py's Pallas kernel (the packed form's closed forms),
 // in float32 on the CUDA cores (fused multiply-adds, no TF32): each product's sum runs in its
 // own order, so the results agree with the packed form to round-off.
+//
+// Ablations, for profiles only (gmr_cuda.py ABLATIONS; $GMR_JAX_CUDA_ABLATE): each
+// GMR_CUDA_ABLATE_<NAME> macro leaves one part of the step's work out, so that the step's time
+// without it shows what the part costs. The trained weights are then wrong.
+//   MOMENTS      Adam's moments stay zero in registers: no global memory reads or writes
+//   WGRAD_SUMS   each weight gradient sums one minibatch row instead of all
+//   FWD_SUMS     the forward products keep their bias only
+//   INGRAD_SUMS  the input gradients' products are left out
+//   HEAD         the head's tasks (HEAD1..4) are left out
+//   BARRIERS     no barrier between phases (the phases race)
 #include <cuda_runtime.h>
 
 #include <cmath>
@@ -132,7 +142,11 @@ __device__ void fwd_item(const Ctx& c, const int* t, int i) {
   float acc[RG];
 #pragma unroll
   for (int j = 0; j < RG; ++j) acc[j] = 0.f;
+#ifdef GMR_CUDA_ABLATE_FWD_SUMS
+  int k = K;
+#else
   int k = 0;
+#endif
 #pragma unroll 2
   for (; k + 4 <= K; k += 4) {
     const float w0 = W[k * S + n], w1 = W[(k + 1) * S + n], w2 = W[(k + 2) * S + n], w3 = W[(k + 3) * S + n];
@@ -194,8 +208,10 @@ __device__ void ingrad_item(const Ctx& c, const int* t, int i) {
   float acc[RG], acc2[RG];
 #pragma unroll
   for (int j = 0; j < RG; ++j) acc[j] = acc2[j] = 0.f;
+#ifndef GMR_CUDA_ABLATE_INGRAD_SUMS
   transposed_product(c, t[0], t[1], k, r0, acc);
   if (t[2] >= 0) transposed_product(c, t[2], t[3], k, r0, acc2);
+#endif
   float* out = buf(c, t[4]);
   const int ldo = ld(c, t[4]);
   const float slope = c.f[F_SLOPE];
@@ -237,13 +253,21 @@ __device__ void wgrad_item(Ctx& c, const int* t, int i) {
   const int ldh = ld(c, t[1]);
   const float* D = buf(c, t[2]);
   const int ldd = ld(c, t[2]);
+#ifdef GMR_CUDA_ABLATE_WGRAD_SUMS
+  const int bs = 1;
+#else
   const int bs = c.prog[H_BS];
+#endif
   float m[KG], v[KG];
   const long long g0 = (long long)L[0] + (long long)k0 * N + n;
 #pragma unroll
   for (int q = 0; q < KG; ++q) {
+#ifdef GMR_CUDA_ABLATE_MOMENTS
+    m[q] = v[q] = 0.f;
+#else
     m[q] = k0 + q <= K ? c.a.m[g0 + (long long)q * N] : 0.f;
     v[q] = k0 + q <= K ? c.a.v[g0 + (long long)q * N] : 0.f;
+#endif
   }
   asm volatile("" ::: "memory");
   float acc[KG];
@@ -277,8 +301,10 @@ __device__ void wgrad_item(Ctx& c, const int* t, int i) {
     const int k = k0 + q;
     if (k <= K) {
       adam(c, c.sm + L[1] + k * S + n, m[q], v[q], acc[q]);
+#ifndef GMR_CUDA_ABLATE_MOMENTS
       c.a.m[g0 + (long long)q * N] = m[q];
       c.a.v[g0 + (long long)q * N] = v[q];
+#endif
     }
   }
 }
@@ -557,10 +583,12 @@ __device__ __forceinline__ void run_item(Ctx& c, const int* t, int i) {
     case INGRAD: ingrad_item(c, t + 2, i); break;
     case WGRAD: wgrad_item(c, t + 2, i); break;
     case LATENT: latent_item(c, t + 2, i); break;
+#ifndef GMR_CUDA_ABLATE_HEAD
     case HEAD1: head1_item(c, i); break;
     case HEAD2: head2_item(c, i); break;
     case HEAD3: head3_item(c, i); break;
     case HEAD4: head4_item(c, i); break;
+#endif
     case LATENT_GRAD: latent_grad_item(c, i); break;
   }
 }
@@ -602,7 +630,12 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   for (int e = threadIdx.x; e < prog[H_N_THETA]; e += NT) { a.m[e] = 0.f; a.v[e] = 0.f; }
   __syncthreads();
 
-  Ctx c{prog, sm, a.floats, a, 0, 0.f, 0.f, 0.f};
+  // the float parameters in shared memory: read there, Adam's constants are not reloaded from
+  // global memory after each of its moments' stores (which the compiler cannot tell apart)
+  __shared__ float fsm[N_FLOATS];
+  if (threadIdx.x < N_FLOATS) fsm[threadIdx.x] = a.floats[threadIdx.x];
+  __syncthreads();
+  Ctx c{prog, sm, fsm, a, 0, 0.f, 0.f, 0.f};
   float* red = buf(c, B_RED);
   const int* phases = prog + prog[H_PHASES];
   const int* tasks = prog + prog[H_TASKS];
@@ -625,7 +658,9 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
         while (i >= base + tasks[t * TASK_INTS + 1]) { base += tasks[t * TASK_INTS + 1]; ++t; }
         run_item(c, tasks + t * TASK_INTS, i - base);
       }
+#ifndef GMR_CUDA_ABLATE_BARRIERS
       __syncthreads();
+#endif
       if (threadIdx.x == 0) {
         const long long now = clock64();
         cycles[p] += (double)(now - clock0);

@@ -34,6 +34,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -65,7 +66,11 @@ HEADER = ("dX", "dU", "X", "U", "lat", "bs", "B", "n_theta", "stats_from", "n_la
 FLOATS = ("slope", "alpha", "s", "c", "half_log_init_var", "rho", "lr", "b1", "one_minus_b1", "b2",
           "one_minus_b2", "eps", "wd", "dU")
 TASK_INTS = 9
-SMEM_LIMIT = 227 * 1024  # an H100's / H200's dynamic shared memory per block
+# an H100's / H200's shared memory per block, less the kernel's static part (the float parameters)
+SMEM_LIMIT = 227 * 1024 - 4 * len(FLOATS)
+# The .cu file's ablations (GMR_CUDA_ABLATE_<NAME>), for profiles: each leaves one part of the step
+# out, so that the step's time without it shows what the part costs (``benchmarks.sstep_ablation``).
+ABLATIONS = ("moments", "wgrad_sums", "fwd_sums", "ingrad_sums", "head", "barriers")
 
 
 def pad4(n: int) -> int:
@@ -328,10 +333,21 @@ def check_supported(cfg: GMRConfig, dtype):
                          "use impl='packed' or 'reference'")
 
 
+def ablations() -> tuple[str, ...]:
+    """The ablations named in ``$GMR_JAX_CUDA_ABLATE`` (comma- or plus-separated ``ABLATIONS``;
+    unset or empty: none). A build with any of them trains wrong weights: for profiles only."""
+    names = tuple(n for n in os.environ.get("GMR_JAX_CUDA_ABLATE", "").replace("+", ",").split(",") if n.strip())
+    unknown = [n for n in names if n.strip() not in ABLATIONS]
+    if unknown:
+        raise ValueError(f"GMR_JAX_CUDA_ABLATE names {', '.join(unknown)}: the ablations are {', '.join(ABLATIONS)} "
+                         "(or leave it unset to train)")
+    return tuple(sorted({n.strip() for n in names}, key=ABLATIONS.index))
+
+
 def _nvcc_flags() -> list[str]:
     arch = os.environ.get("GMR_JAX_CUDA_ARCH", "native")
     return ["-O3", "-std=c++17", "-shared", "-Xcompiler", "-fPIC", f"-arch={arch}",
-            f"-I{jax.ffi.include_dir()}"]
+            f"-I{jax.ffi.include_dir()}", *(f"-DGMR_CUDA_ABLATE_{n.upper()}" for n in ablations())]
 
 
 def build(out: Path, flags: list[str] | None = None) -> str:
@@ -370,6 +386,9 @@ def library() -> ctypes.CDLL:
     key = hashlib.sha256(SOURCE.read_bytes() + version.encode() + extra.encode()).hexdigest()[:16]
     cache = Path(os.environ.get("GMR_JAX_CUDA_CACHE", Path.home() / ".cache" / "gmr_jax" / "cuda"))
     so = cache / f"gmr_cuda_{key}.so"
+    if ablations():
+        warnings.warn(f"gmr_cuda: the kernel is built with the ablations {', '.join(ablations())} "
+                      "($GMR_JAX_CUDA_ABLATE): its weights are wrong, for profiles only", stacklevel=2)
     if not so.exists():
         build(so)
     lib = ctypes.cdll.LoadLibrary(str(so))
