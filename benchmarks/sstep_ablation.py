@@ -25,7 +25,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 
 from gmr_jax.policies import gmr_cuda
 
@@ -33,11 +32,12 @@ from gmr_jax.policies import gmr_cuda
 def parse_variant(text: str) -> tuple[str, ...]:
     """A variant's ablations: ``none`` -> (), ``all`` -> every one, else names joined by ``+``
     (one clear error for an unknown name)."""
+    text = text.strip()
     if text == "none":
         return ()
     if text == "all":
         return gmr_cuda.ABLATIONS
-    names = tuple(text.split("+"))
+    names = tuple(n.strip() for n in text.split("+"))
     unknown = [n for n in names if n not in gmr_cuda.ABLATIONS]
     if unknown or not all(names):
         raise SystemExit(f"sstep_ablation: unknown ablation {'+'.join(unknown) or text!r} in --variants: use none, "
@@ -63,10 +63,14 @@ def run_variant(names: tuple[str, ...], args, out_dir: str) -> dict:
     out = os.path.join(out_dir, f"{'+'.join(names) or 'none'}.json")
     cmd = [sys.executable, "-m", "benchmarks.sstep", "--algorithm", "gmr", "--scenario", args.scenario,
            "--impl", "cuda", "--seeds", str(args.seeds), "--out", out]
-    if args.epochs:
+    if args.epochs is not None:
         cmd += ["--epochs", str(args.epochs)]
     env = dict(os.environ, GMR_JAX_CUDA_ABLATE=",".join(names))
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
+    try:
+        res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
+    except subprocess.TimeoutExpired:
+        raise SystemExit(f"sstep_ablation: variant {'+'.join(names) or 'none'} took more than --timeout "
+                         f"{args.timeout:g} s: raise --timeout (the variants measured before it are in --out)") from None
     if res.returncode != 0:
         raise SystemExit(f"sstep_ablation: variant {'+'.join(names) or 'none'} failed ({' '.join(cmd)}):\n"
                          f"{res.stderr[-2000:]}")
@@ -78,15 +82,19 @@ def run_variant(names: tuple[str, ...], args, out_dir: str) -> dict:
 def main(argv=None) -> int:
     args = parse_args(argv)
     variants = [parse_variant(v) for v in args.variants.split(",")]
-    rows, env = [], None
+    rows, env = [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for names in variants:
             row = run_variant(names, args, tmp)
-            env = env or row.pop("env")
-            row.pop("env", None)
+            variant_env = row.pop("env")
+            env = env or dict(variant_env, nvcc=_nvcc_version())
             row["ablations"] = list(names)
             rows.append(row)
-            print(f"{'+'.join(names) or 'none':>48}: {row['us_per_step']:7.2f} µs/step", flush=True)
+            print(f"{'+'.join(names) or 'none':>48}: {row['us_per_step']:7.2f} µs/step"
+                  f"{'' if row['finite'] else ' (non-finite weights)'}", flush=True)
+            if args.out:  # after every variant: a later failure keeps what was measured
+                with open(args.out, "w") as f:
+                    json.dump({"env": env, "args": vars(args), "rows": rows}, f, indent=1)
     full = next((r["us_per_step"] for r in rows if not r["ablations"]), None)
     if full is not None:
         print(f"\nfull step {full:.2f} µs; each variant's saving:")
@@ -94,10 +102,6 @@ def main(argv=None) -> int:
             if r["ablations"]:
                 print(f"{'+'.join(r['ablations']):>48}: {full - r['us_per_step']:7.2f} µs "
                       f"({(full - r['us_per_step']) / full:6.1%})")
-    env = dict(env or {}, date=time.strftime("%Y-%m-%dT%H:%M:%S%z"), nvcc=_nvcc_version())
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"env": env, "args": vars(args), "rows": rows}, f, indent=1)
     return 0
 
 

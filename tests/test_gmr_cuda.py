@@ -509,7 +509,8 @@ def test_ablations_are_the_cu_files_macros_and_bad_names_are_one_line(monkeypatc
 
     used = set(re.findall(r"^#ifn?def GMR_CUDA_ABLATE_(\w+)$", CU, re.M))
     listed = set(re.findall(r"^//   ([A-Z_]+) ", CU.split("// Ablations")[1].split("#include")[0], re.M))
-    assert used == listed == {n.upper() for n in gmr_cuda.ABLATIONS}
+    any_of = set(re.findall(r"defined\(GMR_CUDA_ABLATE_(\w+)\)", CU))  # GMR_CUDA_ABLATED: Adam's stand-in
+    assert used == listed == any_of == {n.upper() for n in gmr_cuda.ABLATIONS}
     monkeypatch.delenv("GMR_JAX_CUDA_ABLATE", raising=False)
     assert gmr_cuda.ablations() == ()
     assert not any("ABLATE" in f for f in gmr_cuda._nvcc_flags())
@@ -521,16 +522,17 @@ def test_ablations_are_the_cu_files_macros_and_bad_names_are_one_line(monkeypatc
         gmr_cuda.ablations()
     assert sstep_ablation.parse_variant("none") == ()
     assert sstep_ablation.parse_variant("all") == gmr_cuda.ABLATIONS
-    assert sstep_ablation.parse_variant("moments+head") == ("moments", "head")
+    assert sstep_ablation.parse_variant(" moments + head") == ("moments", "head")
     with pytest.raises(SystemExit, match="unknown ablation 'sums'"):
         sstep_ablation.parse_variant("moments+sums")
 
 
 @pytest.mark.skipif(shutil.which("nvcc") is None, reason="needs nvcc")
-def test_kernel_builds_for_hopper_without_spills(tmp_path):
+def test_kernel_builds_for_hopper_without_spills(tmp_path, monkeypatch):
     """The .cu file's device code compiles for sm_90 (with the FFI's headers) and its kernel
     spills no registers (a spill would put the step's accumulators in local memory). The host
     code (the FFI handler) is built with the library, by the GPU-only test."""
+    monkeypatch.delenv("GMR_JAX_CUDA_ABLATE", raising=False)  # the training build, not a profile's
     out = tmp_path / "gmr_cuda.cubin"  # the device code alone: ptxas's report is that of the library's build
     host = ("-shared", "-Xcompiler", "-fPIC")
     flags = [f for f in gmr_cuda._nvcc_flags() if not f.startswith("-arch") and f not in host]

@@ -31,6 +31,9 @@
 //   INGRAD_SUMS  the input gradients' products are left out
 //   HEAD         the head's tasks (HEAD1..4) are left out
 //   BARRIERS     no barrier between phases (the phases race)
+// In an ablated build Adam's gradient may be zero or garbage; a non-normal one is replaced by a
+// normal stand-in, so that Adam's square root stays on its fast path as in training (zero, tiny
+// and non-finite arguments take a slower one) and the profile times the training build's path.
 #include <cuda_runtime.h>
 
 #include <cmath>
@@ -41,6 +44,11 @@
 namespace ffi = xla::ffi;
 
 namespace {
+
+#if defined(GMR_CUDA_ABLATE_MOMENTS) || defined(GMR_CUDA_ABLATE_WGRAD_SUMS) || defined(GMR_CUDA_ABLATE_FWD_SUMS) || \
+    defined(GMR_CUDA_ABLATE_INGRAD_SUMS) || defined(GMR_CUDA_ABLATE_HEAD) || defined(GMR_CUDA_ABLATE_BARRIERS)
+#define GMR_CUDA_ABLATED
+#endif
 
 constexpr int NT = 1024;  // threads per block
 constexpr int RG = 4;     // rows per item of FWD and INGRAD
@@ -236,6 +244,9 @@ __device__ __forceinline__ void adam(Ctx& c, float* theta, float& m, float& v, f
   const float th = *theta;
   c.l2 = fmaf(th, th, c.l2);
   g = g + f[F_WD] * (2.f * th);
+#ifdef GMR_CUDA_ABLATED
+  if (!(fabsf(g) >= 1e-10f && fabsf(g) <= 1e10f)) g = 1e-3f;
+#endif
   m = f[F_ONE_MINUS_B1] * g + f[F_B1] * m;
   v = f[F_ONE_MINUS_B2] * (g * g) + f[F_B2] * v;
   *theta = th + -f[F_LR] * __fdividef(m * c.rc1, __fsqrt_rn(v * c.rc2) + f[F_EPS]);

@@ -336,12 +336,12 @@ def check_supported(cfg: GMRConfig, dtype):
 def ablations() -> tuple[str, ...]:
     """The ablations named in ``$GMR_JAX_CUDA_ABLATE`` (comma- or plus-separated ``ABLATIONS``;
     unset or empty: none). A build with any of them trains wrong weights: for profiles only."""
-    names = tuple(n for n in os.environ.get("GMR_JAX_CUDA_ABLATE", "").replace("+", ",").split(",") if n.strip())
-    unknown = [n for n in names if n.strip() not in ABLATIONS]
+    names = {n.strip() for n in os.environ.get("GMR_JAX_CUDA_ABLATE", "").replace("+", ",").split(",")} - {""}
+    unknown = sorted(names - set(ABLATIONS))
     if unknown:
         raise ValueError(f"GMR_JAX_CUDA_ABLATE names {', '.join(unknown)}: the ablations are {', '.join(ABLATIONS)} "
                          "(or leave it unset to train)")
-    return tuple(sorted({n.strip() for n in names}, key=ABLATIONS.index))
+    return tuple(sorted(names, key=ABLATIONS.index))
 
 
 def _nvcc_flags() -> list[str]:
