@@ -45,6 +45,11 @@ def parse_variant(text: str) -> tuple[str, ...]:
     return names
 
 
+def variant_name(names: tuple[str, ...]) -> str:
+    """A variant as ``--variants`` spells it (``none`` for the full step)."""
+    return "+".join(names) or "none"
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(prog="python -m benchmarks.sstep_ablation", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -60,7 +65,7 @@ def parse_args(argv=None):
 
 def run_variant(names: tuple[str, ...], args, out_dir: str) -> dict:
     """One variant's ``benchmarks.sstep`` row (µs per step and the kernel's phases)."""
-    out = os.path.join(out_dir, f"{'+'.join(names) or 'none'}.json")
+    out = os.path.join(out_dir, f"{variant_name(names)}.json")
     cmd = [sys.executable, "-m", "benchmarks.sstep", "--algorithm", "gmr", "--scenario", args.scenario,
            "--impl", "cuda", "--seeds", str(args.seeds), "--out", out]
     if args.epochs is not None:
@@ -69,10 +74,10 @@ def run_variant(names: tuple[str, ...], args, out_dir: str) -> dict:
     try:
         res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
     except subprocess.TimeoutExpired:
-        raise SystemExit(f"sstep_ablation: variant {'+'.join(names) or 'none'} took more than --timeout "
+        raise SystemExit(f"sstep_ablation: variant {variant_name(names)} took more than --timeout "
                          f"{args.timeout:g} s: raise --timeout (the variants measured before it are in --out)") from None
     if res.returncode != 0:
-        raise SystemExit(f"sstep_ablation: variant {'+'.join(names) or 'none'} failed ({' '.join(cmd)}):\n"
+        raise SystemExit(f"sstep_ablation: variant {variant_name(names)} failed ({' '.join(cmd)}):\n"
                          f"{res.stderr[-2000:]}")
     with open(out) as f:
         data = json.load(f)
@@ -90,7 +95,7 @@ def main(argv=None) -> int:
             env = env or dict(variant_env, nvcc=_nvcc_version())
             row["ablations"] = list(names)
             rows.append(row)
-            print(f"{'+'.join(names) or 'none':>48}: {row['us_per_step']:7.2f} µs/step"
+            print(f"{variant_name(names):>48}: {row['us_per_step']:7.2f} µs/step"
                   f"{'' if row['finite'] else ' (non-finite weights)'}", flush=True)
             if args.out:  # after every variant: a later failure keeps what was measured
                 with open(args.out, "w") as f:
@@ -100,7 +105,7 @@ def main(argv=None) -> int:
         print(f"\nfull step {full:.2f} µs; each variant's saving:")
         for r in rows:
             if r["ablations"]:
-                print(f"{'+'.join(r['ablations']):>48}: {full - r['us_per_step']:7.2f} µs "
+                print(f"{variant_name(r['ablations']):>48}: {full - r['us_per_step']:7.2f} µs "
                       f"({(full - r['us_per_step']) / full:6.1%})")
     return 0
 

@@ -527,6 +527,44 @@ def test_ablations_are_the_cu_files_macros_and_bad_names_are_one_line(monkeypatc
         sstep_ablation.parse_variant("moments+sums")
 
 
+def test_ablation_benchmark_keeps_measured_variants_when_one_fails(tmp_path, monkeypatch):
+    """``benchmarks.sstep_ablation``: each variant's process gets its ablations in the
+    environment; a variant that runs over ``--timeout`` or fails is one clear error, and the
+    variants measured before it stay in ``--out`` (the sstep processes are stood in for)."""
+    import json
+    import subprocess
+
+    from benchmarks import sstep_ablation
+
+    seen = []
+
+    def fake_run(cmd, env=None, timeout=None, **kw):
+        if cmd[0] == "nvcc":  # the version recorded beside the results
+            return subprocess.CompletedProcess(cmd, 0, "Build stand-in\n", "")
+        seen.append(env["GMR_JAX_CUDA_ABLATE"])
+        if env["GMR_JAX_CUDA_ABLATE"] == "head":
+            raise subprocess.TimeoutExpired(cmd, timeout)
+        if env["GMR_JAX_CUDA_ABLATE"] == "barriers":
+            return subprocess.CompletedProcess(cmd, 1, "", "Traceback ...\nRuntimeError: no GPU")
+        out = cmd[cmd.index("--out") + 1]
+        us = {"": 71.0, "moments": 65.5}[env["GMR_JAX_CUDA_ABLATE"]]
+        with open(out, "w") as f:
+            json.dump({"env": {"device": "stand-in"}, "rows": [{"us_per_step": us, "finite": True}]}, f)
+        return subprocess.CompletedProcess(cmd, 0, "", "")
+
+    monkeypatch.setattr(sstep_ablation.subprocess, "run", fake_run)
+    out = tmp_path / "a.json"
+    with pytest.raises(SystemExit, match=r"variant head took more than --timeout 5 s: raise --timeout"):
+        sstep_ablation.main(["--variants", "none,moments,head", "--timeout", "5", "--out", str(out)])
+    assert seen == ["", "moments", "head"]
+    written = json.loads(out.read_text())
+    assert [(r["ablations"], r["us_per_step"]) for r in written["rows"]] == [([], 71.0), (["moments"], 65.5)]
+    assert written["env"] == {"device": "stand-in", "nvcc": "Build stand-in"}
+    with pytest.raises(SystemExit, match="variant barriers failed") as failed:
+        sstep_ablation.main(["--variants", "barriers"])
+    assert str(failed.value).endswith("RuntimeError: no GPU")  # the process's own last words
+
+
 @pytest.mark.skipif(shutil.which("nvcc") is None, reason="needs nvcc")
 def test_kernel_builds_for_hopper_without_spills(tmp_path, monkeypatch):
     """The .cu file's device code compiles for sm_90 (with the FFI's headers) and its kernel
