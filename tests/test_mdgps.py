@@ -83,17 +83,21 @@ def _run_from(cfg, state, keys):
 def test_policy_iteration_jit_equals_eager():
     # GMR's iteration only: MDGPS's runs the same stages with the MLP policy in GMR's place
     # (gmr_jax.policies), and the MLP's S-step is compared with its eager run in test_sstep.py
-    # (test_jit_equals_nojit_and_vmap_equals_loop). An eager iteration compiles each of its
-    # operations as a program of its own, about a minute of the suite's time per algorithm.
+    # (test_jit_equals_nojit_and_vmap_equals_loop). Not compared eager against jit for the MLP:
+    # the policy's linearisation with the prior's update, the S-step's data without the state
+    # marginals, the catch-up's lax.cond over the MLP's parameters and the learning curve's
+    # rollout of its mean; each is the same code as GMR's around another policy's functions. An
+    # eager iteration compiles each of its operations as a program of its own, about a minute of
+    # the suite's time per algorithm (benchmarks/RESULTS.md, forty-sixth session).
     cfg = small("gmr")
     state = mdgps.init(cfg, jax.random.PRNGKey(1))
     key = jax.random.PRNGKey(2)
     # Tolerance from the computation (tests/tolerances.py): jit and eager round differently at
     # every operation of the iteration (rollouts, EM, η search, Adam); the jitted iteration rerun
     # from states perturbed by ε relative shows how far such differences move each output, and
-    # SAFETY times that spread bounds the jit/eager difference. Measured on a 2-core AMD EPYC:
-    # jit and eager differ by at most 3.7× (mdgps) and 4.2× (gmr) that spread, and the spread is
-    # at most 5e-9 of each output's largest entry. A fixed rtol of 1e-7 per element failed there
+    # SAFETY times that spread bounds the jit/eager difference. Measured on a 2-core AMD EPYC
+    # (when both algorithms ran here): jit and eager differ by at most 3.7× (mdgps) and 4.2× (gmr)
+    # that spread, and the spread is at most 5e-9 of each output's largest entry. A fixed rtol of 1e-7 per element failed there
     # on one entry of 6336 that cancellation had made small (-0.016, off by 3e-9 = 1.8e-7 of it).
     first = jnp.asarray(True)
     jitted, tol = measured_tol(lambda s: _iteration_jit(cfg, s, key, first), (state,), SAFETY)
