@@ -97,8 +97,9 @@ def test_policy_iteration_jit_equals_eager():
     # from states perturbed by ε relative shows how far such differences move each output, and
     # SAFETY times that spread bounds the jit/eager difference. Measured on a 2-core AMD EPYC
     # (when both algorithms ran here): jit and eager differ by at most 3.7× (mdgps) and 4.2× (gmr)
-    # that spread, and the spread is at most 5e-9 of each output's largest entry. A fixed rtol of 1e-7 per element failed there
-    # on one entry of 6336 that cancellation had made small (-0.016, off by 3e-9 = 1.8e-7 of it).
+    # that spread, and the spread is at most 5e-9 of each output's largest entry. A fixed rtol of
+    # 1e-7 per element failed there on one entry of 6336 that cancellation had made small
+    # (-0.016, off by 3e-9 = 1.8e-7 of it).
     first = jnp.asarray(True)
     jitted, tol = measured_tol(lambda s: _iteration_jit(cfg, s, key, first), (state,), SAFETY)
     assert_tolerances_small(jitted, tol, 1e-5)
