@@ -57,12 +57,13 @@ jax.config.update("jax_enable_x64", True)
 # and compiles the program instead (as for an entry a killed process left half written, which
 # stays). The folder held 33 MB at the end of a whole suite. The process that made it removes it
 # at the end (a killed session leaves it in the temporary folder); a cache the user names
-# (JAX_COMPILATION_CACHE_DIR) is used instead and kept.
+# (JAX_COMPILATION_CACHE_DIR) is used instead and kept; GMR_JAX_TEST_COMPILATION_CACHE=none
+# compiles every program as before.
 _CACHE_VARIABLE = "GMR_JAX_TEST_COMPILATION_CACHE"
 _OWN_CACHE = not os.environ.get("JAX_COMPILATION_CACHE_DIR") and _CACHE_VARIABLE not in os.environ
 if _OWN_CACHE:
     os.environ[_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="gmr_jax_test_xla_")
-if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+if not os.environ.get("JAX_COMPILATION_CACHE_DIR") and os.environ[_CACHE_VARIABLE] != "none":
     jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_VARIABLE])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
