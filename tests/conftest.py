@@ -1,14 +1,12 @@
 """Test set-up: float64 numerics for every test, four CPU devices, a fast-compiling CPU code
-generator, one compilation cache for the session, and one runner scheduler."""
+generator, and one runner scheduler."""
 
 import ctypes.util
 import importlib.metadata
 import importlib.util
 import os
 import re
-import shutil
 import sys
-import tempfile
 
 # Four XLA CPU devices, so that the seed axis can be split over a device mesh
 # (tests/test_sharding.py); every other computation runs on the first device as before. Set
@@ -44,33 +42,9 @@ import experiments  # noqa: E402,F401  (the CLI's XLA flags, before JAX: experim
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
+# The persistent compilation cache stays off: executables that contain host callbacks (the
+# C MuJoCo backend) are not safe to share through it, and every CI run starts from a clean clone.
 jax.config.update("jax_enable_x64", True)
-
-# One persistent compilation cache for the whole test session, in a fresh folder: the test
-# processes (pytest-xdist's workers inherit this process's environment) and the runs' child
-# processes (``runner._CHILD_JAX_CONFIG``) load a program that another test, or an earlier module
-# of their own (``_release_compiled_programs`` drops the compiled programs after each), compiled
-# already, instead of compiling it again (about 4 % of the suite's time, benchmarks/RESULTS.md,
-# forty-sixth session). The same module and options give the same executable, so no test sees a
-# difference. JAX keeps programs with host callbacks (the C MuJoCo backend) out of the cache, and
-# an entry that one process reads while another still writes it fails to decompress: JAX warns
-# and compiles the program instead (as for an entry a killed process left half written, which
-# stays). The folder held 33 MB at the end of a whole suite. The process that made it removes it
-# at the end (a killed session leaves it in the temporary folder); a cache the user names
-# (JAX_COMPILATION_CACHE_DIR) is used instead and kept; GMR_JAX_TEST_COMPILATION_CACHE=none
-# compiles every program as before.
-_CACHE_VARIABLE = "GMR_JAX_TEST_COMPILATION_CACHE"
-_OWN_CACHE = not os.environ.get("JAX_COMPILATION_CACHE_DIR") and _CACHE_VARIABLE not in os.environ
-if _OWN_CACHE:
-    os.environ[_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="gmr_jax_test_xla_")
-if not os.environ.get("JAX_COMPILATION_CACHE_DIR") and os.environ[_CACHE_VARIABLE] != "none":
-    jax.config.update("jax_compilation_cache_dir", os.environ[_CACHE_VARIABLE])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-
-
-def pytest_unconfigure(config):
-    if _OWN_CACHE:
-        shutil.rmtree(os.environ[_CACHE_VARIABLE], ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
