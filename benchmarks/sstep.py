@@ -178,6 +178,9 @@ def parse_args(argv=None):
                    help="comma-separated warps per thread block of the kernel form")
     p.add_argument("--kernel-dot", default=gmr_kernel.DOT,
                    help=f"comma-separated matrix-product forms of the kernel form ({', '.join(gmr_kernel.DOTS)})")
+    p.add_argument("--cuda-forms", default="auto",
+                   help="comma-separated launch forms of impl cuda (gmr_cuda.FORMS, BLOCKSxTHREADS: blocks per "
+                        "seed, 1 or a thread-block cluster, and threads per block), or auto (the library's choice)")
     p.add_argument("--epochs", type=int, default=config.SStepConfig.epochs)
     p.add_argument("--batch-size", type=cli.positive_int, default=config.SStepConfig.batch_size,
                    help="rows per minibatch (default: the paper's %(default)s); with several values in "
@@ -240,7 +243,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
             adam_entries: str = config.SStepConfig.adam_entries,
             matmul_precision: str = mdgps.MATMUL_PRECISION, options: str = "runner",
             stats_at: str = config.SStepConfig.statistics,
-            stats_epochs: str = config.SStepConfig.statistics_epochs) -> tuple[dict, jax.Array]:
+            stats_epochs: str = config.SStepConfig.statistics_epochs,
+            cuda_form: str | None = None) -> tuple[dict, jax.Array]:
     """Compile and time one S-step configuration (``options``: the runner's XLA options or
     none); returns its result row (and prints it) and the trained weights of the first timed
     S-step, [seeds, n]."""
@@ -248,7 +252,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            + ("" if stats_epochs == config.SStepConfig.statistics_epochs else f"_{stats_epochs}")
            + ("" if matmul_precision == mdgps.MATMUL_PRECISION else f"_{matmul_precision}")
            + ("" if options == "runner" else f"_{options}")
-           + ("" if args.batch_size == config.SStepConfig.batch_size else f"_b{args.batch_size}"))
+           + ("" if args.batch_size == config.SStepConfig.batch_size else f"_b{args.batch_size}")
+           + ("" if cuda_form in (None, "auto") else f"_{cuda_form}"))
     options_given = compiler_options(options, args.seeds)
     # the runner traces a program of n seeds per device under its choices for n (seed_block)
     traced_as = (functools.partial(sharding.seed_block, args.seeds) if options == "runner"
@@ -322,6 +327,7 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "statistics_epochs": stats_epochs,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
+           "cuda_form": cuda_form,
            "rows": int(data.x.shape[-2]), "batch_size": cfg.sstep.batch_size, "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile,
@@ -332,7 +338,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
     if clocks:
         row["cuda_phases"] = _cuda_phases(cfg, data, clocks, steps, row["us_per_step"])
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
-            else f"{impl}/{adam_entries}/{stats_at}" if impl == "packed" else impl)
+            else f"{impl}/{adam_entries}/{stats_at}" if impl == "packed"
+            else f"{impl}/{cuda_form}" if impl == "cuda" else impl)
     if stats_epochs != config.SStepConfig.statistics_epochs:
         name += f"/{stats_epochs}"
     if matmul_precision != mdgps.MATMUL_PRECISION:
@@ -463,15 +470,18 @@ def main(argv=None) -> int:
                                 if impl == "kernel" else [(None, None, (e, st)) for e in args.adam_entries.split(",")
                                                           for st in args.statistics.split(",")]
                                 if impl == "packed" else [(None, None, None)])
+                    forms = args.cuda_forms.split(",") if impl == "cuda" else [None]
                     variants = [v + (se,) for v in variants for se in args.statistics_epochs.split(",")]
                     variants = [v + (mp, o) for v in variants for mp in args.matmul_precision.split(",")
                                 for o in args.compiler_options.split(",")]
-                    for warps, dot, entries, stats_epochs, matmul_precision, options in variants:
+                    variants = [v + (f,) for v in variants for f in forms]
+                    for warps, dot, entries, stats_epochs, matmul_precision, options, form in variants:
                         if warps:
                             gmr_kernel.NUM_WARPS, gmr_kernel.DOT = warps, dot
                         entries, stats = entries or (config.SStepConfig.adam_entries, config.SStepConfig.statistics)
-                        row, weights = measure(algorithm, scenario, unroll, impl, args, dtype, entries,
-                                               matmul_precision, options, stats, stats_epochs)
+                        with gmr_cuda.launch_form(form):
+                            row, weights = measure(algorithm, scenario, unroll, impl, args, dtype, entries,
+                                                   matmul_precision, options, stats, stats_epochs, form)
                         # every form trains the same weights to round-off: per seed, the largest
                         # difference from the first form listed relative to that seed's largest
                         # weight; the row reports the largest and the median over seeds

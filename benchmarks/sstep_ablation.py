@@ -56,8 +56,9 @@ def parse_args(argv=None):
     p.add_argument("--variants", default="none," + ",".join(gmr_cuda.ABLATIONS) + ",all",
                    help="comma-separated: none, all, or ablations joined by '+'")
     p.add_argument("--scenario", default="AB", help="the data size (benchmarks.sstep's --scenario)")
-    p.add_argument("--seeds", type=int, default=1, help="seeds side by side (one block each)")
+    p.add_argument("--seeds", type=int, default=1, help="seeds side by side (a block or a cluster each)")
     p.add_argument("--epochs", type=int, help="benchmarks.sstep's --epochs (default: the S-step's)")
+    p.add_argument("--cuda-form", default="auto", help="the kernel's launch form (benchmarks.sstep's --cuda-forms)")
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per variant")
     p.add_argument("--out", help="write the results as JSON to this file")
     return p.parse_args(argv)
@@ -67,7 +68,7 @@ def run_variant(names: tuple[str, ...], args, out_dir: str) -> dict:
     """One variant's ``benchmarks.sstep`` row (µs per step and the kernel's phases)."""
     out = os.path.join(out_dir, f"{variant_name(names)}.json")
     cmd = [sys.executable, "-m", "benchmarks.sstep", "--algorithm", "gmr", "--scenario", args.scenario,
-           "--impl", "cuda", "--seeds", str(args.seeds), "--out", out]
+           "--impl", "cuda", "--cuda-forms", args.cuda_form, "--seeds", str(args.seeds), "--out", out]
     if args.epochs is not None:
         cmd += ["--epochs", str(args.epochs)]
     env = dict(os.environ, GMR_JAX_CUDA_ABLATE=",".join(names))

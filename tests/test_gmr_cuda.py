@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 from gmr_jax import mdgps
 from gmr_jax.config import GMRConfig, SStepConfig
@@ -38,7 +39,7 @@ def test_the_python_names_follow_the_cu_files_enums():
     assert _enum("FixedBuffer")[:-1] == ["B_" + b.upper() for b in gmr_cuda.FIXED_BUFFERS]
     assert _enum("Header")[:-1] == ["H_" + h.upper() for h in gmr_cuda.HEADER]
     assert _enum("Floats")[:-1] == ["F_" + f.upper() for f in gmr_cuda.FLOATS]
-    assert f"constexpr int NT = {gmr_cuda.THREADS};" in CU
+    assert f"constexpr int NT_MAX = {gmr_cuda.THREADS};" in CU
     assert f"constexpr int TASK_INTS = {gmr_cuda.TASK_INTS};" in CU
     assert f"constexpr int KG = {gmr_cuda.WEIGHT_ROWS_PER_ITEM};" in CU
     assert f"constexpr int RG = {gmr_cuda.ROWS_PER_ITEM};" in CU
@@ -431,6 +432,37 @@ def test_kernel_equals_the_packed_form_on_the_gpu(name):
     with jax.default_matmul_precision(mdgps.MATMUL_PRECISION):
         new_m, ref_m, delta = _forms_agree(name, "packed", "cuda", jnp.float32)
     _metrics_agree(new_m, ref_m, delta)
+
+
+@pytest.mark.skipif(jax.default_backend() != "gpu" or shutil.which("nvcc") is None, reason="needs an NVIDIA GPU and nvcc")
+def test_every_launch_form_trains_the_same_weights_on_the_gpu():
+    """A thread-block cluster's blocks run each phase's items as one block does, each item the
+    same arithmetic in the same order, and keep identical copies of the state: every launch form
+    trains bit-identical weights and statistics. The one exception is the total loss's β·Σθ²,
+    whose sum the blocks split: any order of n positive terms lies within (n − 1)·ε of the sum,
+    plus the rounding of the total itself."""
+    pol, _ = test_sstep._policy("gmr")
+    data = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), test_sstep._full_data(13))
+    params = pol.init(jax.random.key(2), test_sstep.dX, test_sstep.dU, jnp.float32)
+    scfg = SStepConfig(epochs=3, statistics_epochs="all")
+    runs = {}
+    for form in gmr_cuda.FORMS:
+        with gmr_cuda.launch_form(form):
+            # a new jit per form: the library reads the form at each launch
+            runs[form] = jax.jit(lambda p, d, k: test_sstep.sstep(pol, p, d, k, scfg, impl="cuda"))(
+                params, data, jax.random.key(3))
+    ref, ref_m = runs["1x1024"]
+    assert not np.allclose(ravel_pytree(ref.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
+    n = ravel_pytree(ref.net)[0].size
+    eps = float(jnp.finfo(jnp.float32).eps)
+    for form, (new, new_m) in runs.items():
+        for a, b in zip(jax.tree_util.tree_leaves(new), jax.tree_util.tree_leaves(ref)):
+            np.testing.assert_array_equal(a, b, err_msg=form)
+        for key in ("data_loss", "aux"):
+            jax.tree_util.tree_map(lambda a, b: np.testing.assert_array_equal(a, b, err_msg=form), new_m[key], ref_m[key])
+        l2_term = np.abs(np.asarray(ref_m["loss"]) - np.asarray(ref_m["data_loss"]))
+        np.testing.assert_array_less(np.abs(np.asarray(new_m["loss"]) - np.asarray(ref_m["loss"])),
+                                     (n - 1) * eps * l2_term + 2 * eps * np.abs(np.asarray(ref_m["loss"])) + 1e-30)
 
 
 def test_emulated_program_keeps_only_the_last_epochs_statistics(emulated):

@@ -34,14 +34,18 @@
 // In an ablated build Adam's gradient may be zero or garbage; a non-normal one is replaced by a
 // normal stand-in, so that Adam's square root stays on its fast path as in training (zero, tiny
 // and non-finite arguments take a slower one) and the profile times the training build's path.
+#include <cooperative_groups.h>
 #include <cuda_runtime.h>
 
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
+#include <string>
 
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
+namespace cg = cooperative_groups;
 
 namespace {
 
@@ -50,7 +54,8 @@ namespace {
 #define GMR_CUDA_ABLATED
 #endif
 
-constexpr int NT = 1024;  // threads per block
+constexpr int NT_MAX = 1024;     // threads per block with one block per seed
+constexpr int CLUSTER_NT = 512;  // threads per block of a cluster, unless set
 constexpr int RG = 4;     // rows per item of FWD and INGRAD
 constexpr int KG = 4;     // weight rows per item of WGRAD (a multiple of 4)
 constexpr int NSTATS = 8; // total, value, action, action_mse, cov, gain, latent_kl, recon
@@ -117,6 +122,7 @@ struct Ctx {
   int step;
   float rc1, rc2;       // 1 / Adam's bias corrections of the step
   float l2;             // this thread's Σθ² of the step's updated entries (before the update)
+  int rank;             // the block's rank in its seed's cluster (0 with one block per seed)
 };
 
 __device__ __forceinline__ float* buf(const Ctx& c, int id) { return c.sm + c.prog[c.prog[H_BUFS] + id * BUF_INTS]; }
@@ -126,6 +132,38 @@ __device__ __forceinline__ int row_of(const Ctx& c, int r) { return __float_as_i
 
 __device__ __forceinline__ float leaky(float x, float slope) { return x >= 0.f ? x : slope * x; }
 
+// A store into shared memory. With C blocks per seed (a thread-block cluster) every block holds
+// the whole state (θ, the program's buffers) and runs a share of each phase's items; an item's
+// result goes into every block's copy: the block's own first, then the others' through
+// distributed shared memory, so that after the cluster's barrier every copy is the same.
+template <int C>
+__device__ __forceinline__ void put(const Ctx& c, float* p, float v) {
+  *p = v;
+  if constexpr (C > 1) {
+    cg::cluster_group cl = cg::this_cluster();
+#pragma unroll
+    for (int d = 1; d < C; ++d) *cl.map_shared_rank(p, (c.rank + d) % C) = v;
+  }
+}
+
+template <int C>
+__device__ __forceinline__ void put4(const Ctx& c, float* p, float4 v) {
+  *reinterpret_cast<float4*>(p) = v;
+  if constexpr (C > 1) {
+    cg::cluster_group cl = cg::this_cluster();
+#pragma unroll
+    for (int d = 1; d < C; ++d) *reinterpret_cast<float4*>(cl.map_shared_rank(p, (c.rank + d) % C)) = v;
+  }
+}
+
+// The barrier between phases: the block's, or the cluster's (which also orders the other
+// blocks' stores into this block's shared memory before the reads that follow).
+template <int C>
+__device__ __forceinline__ void barrier() {
+  if constexpr (C > 1) cg::this_cluster().sync();
+  else __syncthreads();
+}
+
 // ---------------------------------------------------------------- the networks' tasks
 
 // Activation and cotangent buffers whose rows a product reads four at a time have rows of a
@@ -134,6 +172,7 @@ __device__ __forceinline__ float leaky(float x, float slope) { return x >= 0.f ?
 __device__ __forceinline__ float4 ld4(const float* p) { return *reinterpret_cast<const float4*>(p); }
 
 // out[r, n] = act(Σ_k A[r, k] W[k, n] + b[n]) for RG rows r of one column n.
+template <int C>
 __device__ void fwd_item(const Ctx& c, const int* t, int i) {
   const int* L = layer(c, t[0]);
   const int K = L[2], N = L[3], S = L[4];
@@ -174,7 +213,7 @@ __device__ void fwd_item(const Ctx& c, const int* t, int i) {
   for (int j = 0; j < RG; ++j) {
     if (r0 + j < bs) {
       const float pre = acc[j] + b;
-      out[(r0 + j) * ldo + n] = t[3] ? leaky(pre, c.f[F_SLOPE]) : pre;
+      put<C>(c, &out[(r0 + j) * ldo + n], t[3] ? leaky(pre, c.f[F_SLOPE]) : pre);
     }
   }
 }
@@ -209,6 +248,7 @@ __device__ __forceinline__ void transposed_product(const Ctx& c, int l, int d, i
 
 // out[r, k] (=, or += with t[6]) mask(Σ_n D1[r, n] W1[k, n] (+ Σ_n D2[r, n] W2[k, n])).
 // t: layer1, D1, layer2 (-1: none), D2, out, mask buffer (-1: none), accumulate.
+template <int C>
 __device__ void ingrad_item(const Ctx& c, const int* t, int i) {
   const int K = layer(c, t[0])[2];
   const int k = i % K, r0 = (i / K) * RG;
@@ -230,7 +270,7 @@ __device__ void ingrad_item(const Ctx& c, const int* t, int i) {
     float g = t[2] >= 0 ? acc[j] + acc2[j] : acc[j];
     if (t[6]) g = out[r * ldo + k] + g;
     if (t[5] >= 0) g = buf(c, t[5])[r * ld(c, t[5]) + k] >= 0.f ? g : slope * g;
-    out[r * ldo + k] = g;
+    put<C>(c, &out[r * ldo + k], g);
   }
 }
 
@@ -239,6 +279,7 @@ __device__ void ingrad_item(const Ctx& c, const int* t, int i) {
 // step's bias corrections as reciprocals (c.rc1 = 1/c1, c.rc2 = 1/c2) and one fast division, so
 // each entry costs a few instructions instead of three IEEE divisions (each rounds within an ulp
 // or two of the packed form's).
+template <int C>
 __device__ __forceinline__ void adam(Ctx& c, float* theta, float& m, float& v, float g) {
   const float* f = c.f;
   const float th = *theta;
@@ -249,13 +290,14 @@ __device__ __forceinline__ void adam(Ctx& c, float* theta, float& m, float& v, f
 #endif
   m = f[F_ONE_MINUS_B1] * g + f[F_B1] * m;
   v = f[F_ONE_MINUS_B2] * (g * g) + f[F_B2] * v;
-  *theta = th + -f[F_LR] * __fdividef(m * c.rc1, __fsqrt_rn(v * c.rc2) + f[F_EPS]);
+  put<C>(c, theta, th + -f[F_LR] * __fdividef(m * c.rc1, __fsqrt_rn(v * c.rc2) + f[F_EPS]));
 }
 
 // The gradients of KG weight rows k (row K: the bias) of one column n, and their Adam steps.
 // t: layer, h (the layer's input), D (the cotangent of its output). The entries' moments are
 // read from global memory before the sums (a compiler barrier keeps the reads there), so that
 // their latency overlaps the arithmetic.
+template <int C>
 __device__ void wgrad_item(Ctx& c, const int* t, int i) {
   const int* L = layer(c, t[0]);
   const int K = L[2], N = L[3], S = L[4];
@@ -311,7 +353,7 @@ __device__ void wgrad_item(Ctx& c, const int* t, int i) {
   for (int q = 0; q < KG; ++q) {
     const int k = k0 + q;
     if (k <= K) {
-      adam(c, c.sm + L[1] + k * S + n, m[q], v[q], acc[q]);
+      adam<C>(c, c.sm + L[1] + k * S + n, m[q], v[q], acc[q]);
 #ifndef GMR_CUDA_ABLATE_MOMENTS
       c.a.m[g0 + (long long)q * N] = m[q];
       c.a.v[g0 + (long long)q * N] = v[q];
@@ -323,6 +365,7 @@ __device__ void wgrad_item(Ctx& c, const int* t, int i) {
 // ---------------------------------------------------------------- the latent state
 
 // t: μ layer, log σ² layer, input buffer.  Items (r, j): μ, log σ², z, the KL term.
+template <int C>
 __device__ void latent_item(const Ctx& c, const int* t, int i) {
   const int lat = c.prog[H_LAT];
   const int r = i / lat, j = i % lat;
@@ -341,12 +384,13 @@ __device__ void latent_item(const Ctx& c, const int* t, int i) {
   lv = lv + Wv[K * Lv[4] + j];
   const float sd = expf(0.5f * lv), var = expf(lv);
   const float e = c.a.eps[((long long)c.step * c.prog[H_BS] + r) * lat + j];
-  buf(c, B_MU)[r * ld(c, B_MU) + j] = mu;
-  buf(c, B_LV)[r * ld(c, B_LV) + j] = lv;
-  buf(c, B_Z)[r * ld(c, B_Z) + j] = mu + sd * e;
-  buf(c, B_KLT)[r * ld(c, B_KLT) + j] = mu * mu + var - lv - 1.f;
+  put<C>(c, &buf(c, B_MU)[r * ld(c, B_MU) + j], mu);
+  put<C>(c, &buf(c, B_LV)[r * ld(c, B_LV) + j], lv);
+  put<C>(c, &buf(c, B_Z)[r * ld(c, B_Z) + j], mu + sd * e);
+  put<C>(c, &buf(c, B_KLT)[r * ld(c, B_KLT) + j], mu * mu + var - lv - 1.f);
 }
 
+template <int C>
 __device__ void latent_grad_item(const Ctx& c, int i) {
   const int lat = c.prog[H_LAT];
   const int r = i / lat, j = i % lat;
@@ -355,8 +399,8 @@ __device__ void latent_grad_item(const Ctx& c, int i) {
   const float mu = buf(c, B_MU)[r * ld(c, B_MU) + j], lv = buf(c, B_LV)[r * ld(c, B_LV) + j];
   const float gz = buf(c, B_GZ)[r * ld(c, B_GZ) + j];
   const float e = c.a.eps[((long long)c.step * c.prog[H_BS] + r) * lat + j];
-  buf(c, B_GMU)[r * ld(c, B_GMU) + j] = gz + ct * (2.f * mu);
-  buf(c, B_GLV)[r * ld(c, B_GLV) + j] = gz * e * (0.5f * expf(0.5f * lv)) + ct * (expf(lv) - 1.f);
+  put<C>(c, &buf(c, B_GMU)[r * ld(c, B_GMU) + j], gz + ct * (2.f * mu));
+  put<C>(c, &buf(c, B_GLV)[r * ld(c, B_GLV) + j], gz * e * (0.5f * expf(0.5f * lv)) + ct * (expf(lv) - 1.f));
 }
 
 __device__ __forceinline__ int pad4(int n) { return (n + 3) & ~3; }
@@ -364,24 +408,25 @@ __device__ __forceinline__ int pad4(int n) { return (n + 3) & ~3; }
 // The minibatch's rows: their indices, weights and encoder inputs, g_z ← 0, and the head's
 // per-row data (Σ_t, P, the head's input x̃, the target, log|P|) copied into shared memory four
 // floats at a time, so that the head's phases read no global memory.
+template <int C>
 __device__ void gather_item(const Ctx& c, int i) {
   const int bs = c.prog[H_BS], dX = c.prog[H_DX], dU = c.prog[H_DU], X = c.prog[H_X], U = c.prog[H_U];
   const int* idx = c.a.idx + (long long)c.step * bs;
   if (i < bs * dX) {
     const int r = i / dX, j = i % dX;
     const int row = idx[r];
-    buf(c, B_XIN)[r * ld(c, B_XIN) + j] = c.a.xn[(long long)row * X + j];
+    put<C>(c, &buf(c, B_XIN)[r * ld(c, B_XIN) + j], c.a.xn[(long long)row * X + j]);
     if (j == 0) {
-      buf(c, B_ROWS)[r] = __int_as_float(row);
-      buf(c, B_WROW)[r] = c.a.wt[row];
-      buf(c, B_LDP)[r] = c.a.logdet[row];
+      put<C>(c, &buf(c, B_ROWS)[r], __int_as_float(row));
+      put<C>(c, &buf(c, B_WROW)[r], c.a.wt[row]);
+      put<C>(c, &buf(c, B_LDP)[r], c.a.logdet[row]);
     }
     return;
   }
   i -= bs * dX;
   const int ngz = bs * ld(c, B_GZ);
   if (i < ngz) {
-    buf(c, B_GZ)[i] = 0.f;
+    put<C>(c, &buf(c, B_GZ)[i], 0.f);
     return;
   }
   i -= ngz;
@@ -389,25 +434,25 @@ __device__ void gather_item(const Ctx& c, int i) {
   if (i < bs * dX * qx) {  // Σ_t: row j of dX entries (padded to a multiple of four)
     const int r = i / (dX * qx), j = (i / qx) % dX, q = i % qx;
     const float4 v = ld4(c.a.sig + ((long long)idx[r] * X + j) * X + 4 * q);
-    *reinterpret_cast<float4*>(buf(c, B_SIG) + r * ld(c, B_SIG) + j * pad4(dX) + 4 * q) = v;
+    put4<C>(c, buf(c, B_SIG) + r * ld(c, B_SIG) + j * pad4(dX) + 4 * q, v);
     return;
   }
   i -= bs * dX * qx;
   if (i < bs * dU * qu) {  // P: row a of dU entries
     const int r = i / (dU * qu), a = (i / qu) % dU, q = i % qu;
     const float4 v = ld4(c.a.prc + ((long long)idx[r] * U + a) * U + 4 * q);
-    *reinterpret_cast<float4*>(buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU) + 4 * q) = v;
+    put4<C>(c, buf(c, B_PRC) + r * ld(c, B_PRC) + a * pad4(dU) + 4 * q, v);
     return;
   }
   i -= bs * dU * qu;
   if (i < bs * qe) {  // x̃ with its constant 1
     const int r = i / qe, q = i % qe;
-    *reinterpret_cast<float4*>(buf(c, B_XE) + r * ld(c, B_XE) + 4 * q) = ld4(c.a.xe + (long long)idx[r] * X + 4 * q);
+    put4<C>(c, buf(c, B_XE) + r * ld(c, B_XE) + 4 * q, ld4(c.a.xe + (long long)idx[r] * X + 4 * q));
     return;
   }
   i -= bs * qe;
   const int r = i / qu, q = i % qu;  // the target
-  *reinterpret_cast<float4*>(buf(c, B_TGT) + r * ld(c, B_TGT) + 4 * q) = ld4(c.a.tgt + (long long)idx[r] * U + 4 * q);
+  put4<C>(c, buf(c, B_TGT) + r * ld(c, B_TGT) + 4 * q, ld4(c.a.tgt + (long long)idx[r] * U + 4 * q));
 }
 
 // ---------------------------------------------------------------- the head (gmr.fused_head)
@@ -415,41 +460,42 @@ __device__ void gather_item(const Ctx& c, int i) {
 // Items (r, i), i < dU: row i of L and of tanh(r/c) (V's strictly lower entries are c·tanh(r/c),
 // its diagonal 1), tanh of the diagonal, Δu_i, log σ_i − log‖V_i‖;
 // then items (r, i, j), j < dX: ΔK = G·diag(scale) − K.
+template <int C>
 __device__ void head1_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
   const float* f = c.f;
   if (i < bs * dU) {
     const int r = i / dU, a = i % dU;
-    const float* C = buf(c, B_COUT) + r * ld(c, B_COUT);
+    const float* Co = buf(c, B_COUT) + r * ld(c, B_COUT);
     const float* G = buf(c, B_GOUT) + r * ld(c, B_GOUT);
-    const float tt = tanhf(C[a * U + a] / f[F_S]);
+    const float tt = tanhf(Co[a * U + a] / f[F_S]);
     const float log_sigma = f[F_HALF_LOG_INIT_VAR] + f[F_S] * tt;
     float* T = buf(c, B_T) + r * dU * dU + a * dU;
     float ss = 0.f;
 #pragma unroll 4
     for (int b = 0; b < dU; ++b) {
-      const float Tb = tanhf(C[a * U + b] / f[F_C]);
+      const float Tb = tanhf(Co[a * U + b] / f[F_C]);
       const float Vb = (b < a ? f[F_C] * Tb : 0.f) + (b == a ? 1.f : 0.f);
-      T[b] = Tb;
+      put<C>(c, &T[b], Tb);
       ss = fmaf(Vb, Vb, ss);
     }
     const float rn = sqrtf(ss), sigma = expf(log_sigma), srn = sigma / rn;
     float* Lr = buf(c, B_L) + r * dU * dU + a * dU;
-    for (int b = 0; b < dU; ++b) Lr[b] = srn * ((b < a ? f[F_C] * T[b] : 0.f) + (b == a ? 1.f : 0.f));
-    buf(c, B_TS)[r * dU + a] = tt;
-    buf(c, B_SRN)[r * dU + a] = srn;
-    buf(c, B_RN)[r * dU + a] = rn;
-    buf(c, B_LDT)[r * dU + a] = log_sigma - logf(rn);
+    for (int b = 0; b < dU; ++b) put<C>(c, &Lr[b], srn * ((b < a ? f[F_C] * T[b] : 0.f) + (b == a ? 1.f : 0.f)));
+    put<C>(c, &buf(c, B_TS)[r * dU + a], tt);
+    put<C>(c, &buf(c, B_SRN)[r * dU + a], srn);
+    put<C>(c, &buf(c, B_RN)[r * dU + a], rn);
+    put<C>(c, &buf(c, B_LDT)[r * dU + a], log_sigma - logf(rn));
     const float* xe = buf(c, B_XE) + r * ld(c, B_XE);
     float du = 0.f;
     #pragma unroll 4
     for (int j = 0; j <= dX; ++j) du = fmaf(G[a * X + j], xe[j], du);
-    buf(c, B_DU)[r * dU + a] = du - buf(c, B_TGT)[r * ld(c, B_TGT) + a];
+    put<C>(c, &buf(c, B_DU)[r * dU + a], du - buf(c, B_TGT)[r * ld(c, B_TGT) + a]);
   } else {
     i -= bs * dU;
     const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX, row = row_of(c, r);
     const float* G = buf(c, B_GOUT) + r * ld(c, B_GOUT);
-    buf(c, B_DK)[r * dU * dX + a * dX + j] = G[a * X + j] * c.a.scale[j] - c.a.Kp[((long long)row * U + a) * X + j];
+    put<C>(c, &buf(c, B_DK)[r * dU * dX + a * dX + j], G[a * X + j] * c.a.scale[j] - c.a.Kp[((long long)row * U + a) * X + j]);
   }
 }
 
@@ -464,6 +510,7 @@ __device__ __forceinline__ float p_row_times(const Ctx& c, int r, int a, const f
 }
 
 // ΔK Σ (r, i, j < dX); P Δu (r, i); P L (r, i, j < dU).
+template <int C>
 __device__ void head2_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], bs = c.prog[H_BS];
   if (i < bs * dU * dX) {
@@ -473,7 +520,7 @@ __device__ void head2_item(const Ctx& c, int i) {
     float s = 0.f;
     #pragma unroll 4
     for (int k = 0; k < dX; ++k) s = fmaf(dK[k], sg[k], s);
-    buf(c, B_DKS)[r * dU * dX + a * dX + j] = s;
+    put<C>(c, &buf(c, B_DKS)[r * dU * dX + a * dX + j], s);
     return;
   }
   i -= bs * dU * dX;
@@ -484,20 +531,21 @@ __device__ void head2_item(const Ctx& c, int i) {
     float s = 0.f;
     #pragma unroll 4
     for (int b = 0; b < dU; ++b) s = fmaf(P[b], du[b], s);
-    buf(c, B_PDU)[r * dU + a] = s;
+    put<C>(c, &buf(c, B_PDU)[r * dU + a], s);
     return;
   }
   i -= bs * dU;
   const int r = i / (dU * dU), a = (i / dU) % dU, b = i % dU;
-  buf(c, B_PL)[r * dU * dU + a * dU + b] = p_row_times(c, r, a, buf(c, B_L) + r * dU * dU, dU, b);
+  put<C>(c, &buf(c, B_PL)[r * dU * dU + a * dU + b], p_row_times(c, r, a, buf(c, B_L) + r * dU * dU, dU, b));
 }
 
 // P ΔK Σ (r, i, j < dX); the rows of tr(Lᵀ P L) (r, i).
+template <int C>
 __device__ void head3_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], bs = c.prog[H_BS];
   if (i < bs * dU * dX) {
     const int r = i / (dU * dX), a = (i / dX) % dU, j = i % dX;
-    buf(c, B_PDKS)[r * dU * dX + a * dX + j] = p_row_times(c, r, a, buf(c, B_DKS) + r * dU * dX, dX, j);
+    put<C>(c, &buf(c, B_PDKS)[r * dU * dX + a * dX + j], p_row_times(c, r, a, buf(c, B_DKS) + r * dU * dX, dX, j));
     return;
   }
   i -= bs * dU * dX;
@@ -506,11 +554,12 @@ __device__ void head3_item(const Ctx& c, int i) {
   const float* PL = buf(c, B_PL) + r * dU * dU + a * dU;
   float s = 0.f;
   for (int b = 0; b < dU; ++b) s = fmaf(L[b], PL[b], s);
-  buf(c, B_TR)[r * dU + a] = s;
+  put<C>(c, &buf(c, B_TR)[r * dU + a], s);
 }
 
 // The cotangents of the gain output (r, n < NG), the Cholesky output (r, n < NC) and x̂
 // (r, j < dX); each row's loss terms (r).
+template <int C>
 __device__ void head4_item(const Ctx& c, int i) {
   const int dU = c.prog[H_DU], dX = c.prog[H_DX], X = c.prog[H_X], U = c.prog[H_U], bs = c.prog[H_BS];
   const int NG = layer(c, c.prog[H_L_GAIN])[3], NC = layer(c, c.prog[H_L_CHOL])[3];
@@ -521,7 +570,7 @@ __device__ void head4_item(const Ctx& c, int i) {
     const float xe = j <= dX ? buf(c, B_XE)[r * ld(c, B_XE) + j] : 0.f;  // x̃ is zero beyond its 1
     float g = (rho * buf(c, B_PDU)[r * dU + a]) * xe;
     if (j < dX) g = g + (rho * buf(c, B_PDKS)[r * dU * dX + a * dX + j]) * c.a.scale[j];
-    buf(c, B_DG)[r * ld(c, B_DG) + n] = g;
+    put<C>(c, &buf(c, B_DG)[r * ld(c, B_DG) + n], g);
     return;
   }
   i -= bs * NG;
@@ -541,7 +590,7 @@ __device__ void head4_item(const Ctx& c, int i) {
         g = q * (1.f - tt * tt);
       }
     }
-    buf(c, B_DC)[r * ld(c, B_DC) + n] = g;
+    put<C>(c, &buf(c, B_DC)[r * ld(c, B_DC) + n], g);
     return;
   }
   i -= bs * NC;
@@ -549,11 +598,12 @@ __device__ void head4_item(const Ctx& c, int i) {
     const int r = i / dX, j = i % dX;
     const float w = buf(c, B_WROW)[r];
     const float diff = buf(c, B_XIN)[r * ld(c, B_XIN) + j] - buf(c, B_XHAT)[r * ld(c, B_XHAT) + j];
-    buf(c, B_DXH)[r * ld(c, B_DXH) + j] = (-2.f * rho * w) * diff;
+    put<C>(c, &buf(c, B_DXH)[r * ld(c, B_DXH) + j], (-2.f * rho * w) * diff);
     return;
   }
   // the row's loss terms, in STATS order after total and value:
-  // action, action_mse, cov, gain, latent_kl, recon
+  // action, action_mse, cov, gain, latent_kl, recon; only the steps with statistics read them
+  if (c.step < c.prog[H_STATS_FROM]) return;
   const int r = i - bs * dX, lat = c.prog[H_LAT];
   const float w = buf(c, B_WROW)[r];
   const float* du = buf(c, B_DU) + r * dU;
@@ -577,33 +627,35 @@ __device__ void head4_item(const Ctx& c, int i) {
   float kl = 0.f;
   for (int j = 0; j < lat; ++j) kl = kl + buf(c, B_KLT)[r * ld(c, B_KLT) + j];
   float* out = buf(c, B_ROWSTAT) + r * (NSTATS - 2);
-  out[0] = action;
-  out[1] = mse / f[F_DU];
-  out[2] = tr - w * (2.f * ldt + f[F_DU] + buf(c, B_LDP)[r]);
-  out[3] = gain;
-  out[4] = w * 0.5f * kl;
-  out[5] = w * recon;
+  put<C>(c, &out[0], action);
+  put<C>(c, &out[1], mse / f[F_DU]);
+  put<C>(c, &out[2], tr - w * (2.f * ldt + f[F_DU] + buf(c, B_LDP)[r]));
+  put<C>(c, &out[3], gain);
+  put<C>(c, &out[4], w * 0.5f * kl);
+  put<C>(c, &out[5], w * recon);
 }
 
 // ---------------------------------------------------------------- the kernel
 
+template <int C>
 __device__ __forceinline__ void run_item(Ctx& c, const int* t, int i) {
   switch (t[0]) {
-    case GATHER: gather_item(c, i); break;
-    case FWD: fwd_item(c, t + 2, i); break;
-    case INGRAD: ingrad_item(c, t + 2, i); break;
-    case WGRAD: wgrad_item(c, t + 2, i); break;
-    case LATENT: latent_item(c, t + 2, i); break;
+    case GATHER: gather_item<C>(c, i); break;
+    case FWD: fwd_item<C>(c, t + 2, i); break;
+    case INGRAD: ingrad_item<C>(c, t + 2, i); break;
+    case WGRAD: wgrad_item<C>(c, t + 2, i); break;
+    case LATENT: latent_item<C>(c, t + 2, i); break;
 #ifndef GMR_CUDA_ABLATE_HEAD
-    case HEAD1: head1_item(c, i); break;
-    case HEAD2: head2_item(c, i); break;
-    case HEAD3: head3_item(c, i); break;
-    case HEAD4: head4_item(c, i); break;
+    case HEAD1: head1_item<C>(c, i); break;
+    case HEAD2: head2_item<C>(c, i); break;
+    case HEAD3: head3_item<C>(c, i); break;
+    case HEAD4: head4_item<C>(c, i); break;
 #endif
-    case LATENT_GRAD: latent_grad_item(c, i); break;
+    case LATENT_GRAD: latent_grad_item<C>(c, i); break;
   }
 }
 
+template <int NT>
 __device__ float block_sum(float x, float* red) {
   for (int o = 16; o > 0; o >>= 1) x += __shfl_xor_sync(0xffffffffu, x, o);
   const int warp = threadIdx.x / 32, lane = threadIdx.x % 32;
@@ -617,9 +669,15 @@ __device__ float block_sum(float x, float* red) {
   return s;  // the sum in thread 0 (warp 0)
 }
 
+// One seed's S-step on C blocks (C = 1: one block; C > 1: a thread-block cluster, whose blocks
+// share each phase's items and keep identical copies of the state).
+// Every item computes what it computes with one block, in the same order, so the weights do not
+// depend on C.
+template <int C, int NT>
 __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   extern __shared__ float sm[];
-  const int seed = blockIdx.x;
+  const int seed = blockIdx.x / C;
+  const int rank = C > 1 ? (int)cg::this_cluster().block_rank() : 0;
   a.idx += seed * a.s_idx; a.eps += seed * a.s_eps; a.c1 += seed * a.s_steps; a.c2 += seed * a.s_steps;
   a.xn += seed * a.s_xn; a.xe += seed * a.s_xn; a.sig += seed * a.s_sig; a.tgt += seed * a.s_u;
   a.prc += seed * a.s_uu; a.Kp += seed * a.s_ux; a.wt += seed * a.s_b; a.logdet += seed * a.s_b;
@@ -631,22 +689,25 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   const int np = a.program[H_PROGRAM];
   for (int i = threadIdx.x; i < np; i += NT) prog[i] = a.program[i];
   __syncthreads();
-  // θ into shared memory (rows of stride S), Adam's moments to zero
+  // θ into shared memory (rows of stride S), Adam's moments to zero (a cluster's blocks a share
+  // each, ordered before any block's Adam by the barrier below)
   const int nl = prog[H_N_LAYERS];
   for (int l = 0; l < nl; ++l) {
     const int* L = prog + prog[H_LAYERS] + l * LAYER_INTS;
     const int K1 = L[2] + 1, N = L[3], S = L[4];
     for (int e = threadIdx.x; e < K1 * N; e += NT) sm[L[1] + (e / N) * S + e % N] = a.theta0[L[0] + e];
   }
-  for (int e = threadIdx.x; e < prog[H_N_THETA]; e += NT) { a.m[e] = 0.f; a.v[e] = 0.f; }
-  __syncthreads();
+  for (int e = rank * NT + threadIdx.x; e < prog[H_N_THETA]; e += C * NT) { a.m[e] = 0.f; a.v[e] = 0.f; }
 
   // the float parameters in shared memory: read there, Adam's constants are not reloaded from
   // global memory after each of its moments' stores (which the compiler cannot tell apart)
   __shared__ float fsm[N_FLOATS];
+  // the blocks' Σθ² of a step, gathered in the first block of the cluster
+  __shared__ float l2s[C];
   if (threadIdx.x < N_FLOATS) fsm[threadIdx.x] = a.floats[threadIdx.x];
-  __syncthreads();
-  Ctx c{prog, sm, fsm, a, 0, 0.f, 0.f, 0.f};
+  // a cluster's blocks have all started (their shared memory can be written) after this barrier
+  barrier<C>();
+  Ctx c{prog, sm, fsm, a, 0, 0.f, 0.f, 0.f, rank};
   float* red = buf(c, B_RED);
   const int* phases = prog + prog[H_PHASES];
   const int* tasks = prog + prog[H_TASKS];
@@ -664,13 +725,17 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
     c.l2 = 0.f;
     for (int p = 0; p < prog[H_N_PHASES]; ++p) {
       const int* ph = phases + p * PHASE_INTS;
-      for (int i = threadIdx.x; i < ph[2]; i += NT) {
+      // item i on block (i / 32) mod C: each warp runs 32 consecutive items, as with one block
+      // (coalesced global reads, conflict-free shared memory)
+      for (int j = threadIdx.x;; j += NT) {
+        const int i = ((j >> 5) * C + rank) * 32 + (j & 31);
+        if (i >= ph[2]) break;
         int t = ph[0], base = 0;
         while (i >= base + tasks[t * TASK_INTS + 1]) { base += tasks[t * TASK_INTS + 1]; ++t; }
-        run_item(c, tasks + t * TASK_INTS, i - base);
+        run_item<C>(c, tasks + t * TASK_INTS, i - base);
       }
 #ifndef GMR_CUDA_ABLATE_BARRIERS
-      __syncthreads();
+      barrier<C>();
 #endif
       if (threadIdx.x == 0) {
         const long long now = clock64();
@@ -680,8 +745,16 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
     }
     float* st = a.stats + (long long)step * NSTATS;
     if (step >= prog[H_STATS_FROM]) {
-      const float l2 = block_sum(c.l2, red);
-      if (threadIdx.x == 0) {
+      float l2 = block_sum<NT>(c.l2, red);
+      if constexpr (C > 1) {  // the blocks' sums, added in rank order in the first block
+        if (threadIdx.x == 0) *cg::this_cluster().map_shared_rank(&l2s[rank], 0) = l2;
+        cg::this_cluster().sync();
+        if (threadIdx.x == 0 && rank == 0) {
+          l2 = 0.f;
+          for (int q = 0; q < C; ++q) l2 = l2 + l2s[q];
+        }
+      }
+      if (threadIdx.x == 0 && rank == 0) {
         const float* f = a.floats;
         const int bs = prog[H_BS];
         const float* rs = buf(c, B_ROWSTAT);
@@ -700,7 +773,7 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
         for (int k = 0; k < NSTATS - 2; ++k) st[2 + k] = aux[k];
       }
       __syncthreads();
-    } else if (threadIdx.x < NSTATS) {
+    } else if (threadIdx.x < NSTATS && rank == 0) {
       st[threadIdx.x] = 0.f;
     }
     if (threadIdx.x == 0) {
@@ -709,13 +782,70 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
       clock0 = now;
     }
   }
-  if (threadIdx.x == 0)
-    for (int p = 0; p <= nph; ++p) a.cycles[p] = (float)cycles[p];
-  for (int l = 0; l < nl; ++l) {
-    const int* L = prog + prog[H_LAYERS] + l * LAYER_INTS;
-    const int K1 = L[2] + 1, N = L[3], S = L[4];
-    for (int e = threadIdx.x; e < K1 * N; e += NT) a.theta[L[0] + e] = sm[L[1] + (e / N) * S + e % N];
+  if (rank == 0) {
+    if (threadIdx.x == 0)
+      for (int p = 0; p <= nph; ++p) a.cycles[p] = (float)cycles[p];
+    for (int l = 0; l < nl; ++l) {
+      const int* L = prog + prog[H_LAYERS] + l * LAYER_INTS;
+      const int K1 = L[2] + 1, N = L[3], S = L[4];
+      for (int e = threadIdx.x; e < K1 * N; e += NT) a.theta[L[0] + e] = sm[L[1] + (e / N) * S + e % N];
+    }
   }
+  // no block leaves while another may still write into its shared memory
+  if constexpr (C > 1) cg::this_cluster().sync();
+}
+
+// One launch of C blocks per seed (a cluster of C blocks for C > 1).
+template <int C, int NT>
+cudaError_t launch(const Args& a, long long seeds, int64_t smem_bytes, cudaStream_t stream) {
+  cudaError_t err = cudaFuncSetAttribute(gmr_sstep_kernel<C, NT>, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                         (int)smem_bytes);
+  if (err != cudaSuccess) return err;
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = dim3((unsigned)(seeds * C));
+  cfg.blockDim = dim3(NT);
+  cfg.dynamicSmemBytes = (size_t)smem_bytes;
+  cfg.stream = stream;
+  cudaLaunchAttribute attr[1];
+  attr[0].id = cudaLaunchAttributeClusterDimension;
+  attr[0].val.clusterDim.x = C;
+  attr[0].val.clusterDim.y = 1;
+  attr[0].val.clusterDim.z = 1;
+  cfg.attrs = attr;
+  cfg.numAttrs = C > 1 ? 1 : 0;
+  err = cudaLaunchKernelEx(&cfg, gmr_sstep_kernel<C, NT>, a);
+  if (err != cudaSuccess) return err;
+  return cudaGetLastError();
+}
+
+// How many clusters of C blocks (CLUSTER_NT threads each) the GPU runs at once.
+int max_clusters(int C, int64_t smem_bytes) {
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = dim3((unsigned)C);
+  cfg.blockDim = dim3(CLUSTER_NT);
+  cfg.dynamicSmemBytes = (size_t)smem_bytes;
+  cudaLaunchAttribute attr[1];
+  attr[0].id = cudaLaunchAttributeClusterDimension;
+  attr[0].val.clusterDim.x = C;
+  attr[0].val.clusterDim.y = 1;
+  attr[0].val.clusterDim.z = 1;
+  cfg.attrs = attr;
+  cfg.numAttrs = 1;
+  int n = 0;
+  cudaError_t err;
+  switch (C) {
+    case 8: err = cudaFuncSetAttribute(gmr_sstep_kernel<8, CLUSTER_NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
+      if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<8, CLUSTER_NT>, &cfg); break;
+    case 4: err = cudaFuncSetAttribute(gmr_sstep_kernel<4, CLUSTER_NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
+      if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<4, CLUSTER_NT>, &cfg); break;
+    default: err = cudaFuncSetAttribute(gmr_sstep_kernel<2, CLUSTER_NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
+      if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<2, CLUSTER_NT>, &cfg);
+  }
+  if (err != cudaSuccess) {
+    cudaGetLastError();  // a GPU without clusters: one block per seed
+    return 0;
+  }
+  return n;
 }
 
 long long per_seed(const ffi::AnyBuffer& b, long long seeds) { return (long long)b.element_count() / seeds; }
@@ -754,11 +884,31 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
   a.s_x = per_seed(scale, seeds); a.s_theta = per_seed(theta0, seeds); a.s_program = per_seed(program, seeds);
   a.s_floats = per_seed(floats, seeds); a.s_stats = per_seed(*stats, seeds);
   a.s_cycles = per_seed(*cycles, seeds);
-  cudaError_t err = cudaFuncSetAttribute(gmr_sstep_kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
-                                         (int)smem_bytes);
-  if (err == cudaSuccess) {
-    gmr_sstep_kernel<<<(unsigned)seeds, NT, (size_t)smem_bytes, stream>>>(a);
-    err = cudaGetLastError();
+  // the launch form: $GMR_JAX_CUDA_CLUSTER blocks per seed with $GMR_JAX_CUDA_THREADS threads
+  // each where set (profiles), else the largest cluster whose seeds all run at once
+  int cluster = 0, threads = 0;
+  if (const char* env = std::getenv("GMR_JAX_CUDA_CLUSTER")) cluster = std::atoi(env);
+  if (const char* env = std::getenv("GMR_JAX_CUDA_THREADS")) threads = std::atoi(env);
+  if (cluster == 0) {
+    cluster = 1;
+    for (int c : {8, 4, 2}) {
+      if (seeds <= max_clusters(c, smem_bytes)) {
+        cluster = c;
+        break;
+      }
+    }
+  }
+  if (threads == 0) threads = cluster == 1 ? NT_MAX : CLUSTER_NT;
+  cudaError_t err = cudaErrorInvalidConfiguration;
+  switch (cluster * 10000 + threads) {
+    case 11024: err = launch<1, 1024>(a, seeds, smem_bytes, stream); break;
+    case 20512: err = launch<2, 512>(a, seeds, smem_bytes, stream); break;
+    case 40512: err = launch<4, 512>(a, seeds, smem_bytes, stream); break;
+    case 80256: err = launch<8, 256>(a, seeds, smem_bytes, stream); break;
+    case 80512: err = launch<8, 512>(a, seeds, smem_bytes, stream); break;
+    default:
+      return ffi::Error::InvalidArgument("gmr_sstep_cuda: $GMR_JAX_CUDA_CLUSTER and $GMR_JAX_CUDA_THREADS name no "
+                                         "built form (1x1024, 2x512, 4x512, 8x256, 8x512): unset them");
   }
   if (err != cudaSuccess)
     return ffi::Error::Internal(std::string("gmr_sstep_cuda: ") + cudaGetErrorString(err));

@@ -26,6 +26,7 @@ compiler, and registered as the FFI target ``gmr_sstep_cuda``.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import hashlib
@@ -66,11 +67,43 @@ HEADER = ("dX", "dU", "X", "U", "lat", "bs", "B", "n_theta", "stats_from", "n_la
 FLOATS = ("slope", "alpha", "s", "c", "half_log_init_var", "rho", "lr", "b1", "one_minus_b1", "b2",
           "one_minus_b2", "eps", "wd", "dU")
 TASK_INTS = 9
-# an H100's / H200's shared memory per block, less the kernel's static part (the float parameters)
-SMEM_LIMIT = 227 * 1024 - 4 * len(FLOATS)
+# The launch forms the library is built with, BLOCKSxTHREADS: blocks per seed (1, or a
+# thread-block cluster of 2, 4 or 8 blocks that share each phase's items) and threads per block.
+FORMS = ("1x1024", "2x512", "4x512", "8x256", "8x512")
+MAX_CLUSTER = 8
+# an H100's / H200's shared memory per block, less the kernel's static part (the float
+# parameters, the cluster's partial sums)
+SMEM_LIMIT = 227 * 1024 - 4 * (len(FLOATS) + MAX_CLUSTER)
 # The .cu file's ablations (GMR_CUDA_ABLATE_<NAME>), for profiles: each leaves one part of the step
 # out, so that the step's time without it shows what the part costs (``benchmarks.sstep_ablation``).
 ABLATIONS = ("moments", "wgrad_sums", "fwd_sums", "ingrad_sums", "head", "barriers")
+
+
+@contextlib.contextmanager
+def launch_form(form: str | None):
+    """Within: the kernel launches in ``form`` (one of ``FORMS``; "auto": the library's choice; None:
+    as set outside), through ``$GMR_JAX_CUDA_CLUSTER`` and ``$GMR_JAX_CUDA_THREADS``, which the
+    library reads at each launch. The weights do not depend on the form."""
+    if form is None:
+        yield
+        return
+    if form not in FORMS + ("auto",):
+        raise ValueError(f"CUDA launch form {form!r}: the built forms are {', '.join(FORMS)} (or auto)")
+    names = ("GMR_JAX_CUDA_CLUSTER", "GMR_JAX_CUDA_THREADS")
+    saved = {k: os.environ.get(k) for k in names}
+    for k, v in zip(names, form.split("x") if form != "auto" else (None, None)):
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def pad4(n: int) -> int:
