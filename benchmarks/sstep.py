@@ -286,8 +286,9 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         exact = _flat_weights(net64, args.seeds)
         params, data = _as_float(params, dtype), _as_float(data, dtype)
     clocks = []  # the CUDA form's profile: clock cycles per phase of each S-step run
+    smem = []  # the CUDA form's shared memory per block (bytes), seen while tracing
     t0 = time.perf_counter()
-    with jax.default_matmul_precision(matmul_precision), traced_as(), _cuda_clocks(clocks, impl == "cuda"):
+    with jax.default_matmul_precision(matmul_precision), traced_as(), _cuda_clocks(clocks, impl == "cuda", smem):
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
     with traced_as():
@@ -328,6 +329,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "cuda_form": cuda_form,
+           # the form the library took (for "auto", its choice for these seeds on this GPU)
+           "cuda_form_used": gmr_cuda.chosen_form(args.seeds, smem[0]) if smem else None,
            "rows": int(data.x.shape[-2]), "batch_size": cfg.sstep.batch_size, "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile,
@@ -339,7 +342,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         row["cuda_phases"] = _cuda_phases(cfg, data, clocks, steps, row["us_per_step"])
     name = (f"{impl}/{row['num_warps']}/{row['dot']}" if impl == "kernel"
             else f"{impl}/{adam_entries}/{stats_at}" if impl == "packed"
-            else f"{impl}/{cuda_form}" if impl == "cuda" else impl)
+            else f"{impl}/{cuda_form}" + ("" if cuda_form == row["cuda_form_used"] else f"={row['cuda_form_used']}")
+            if impl == "cuda" else impl)
     if stats_epochs != config.SStepConfig.statistics_epochs:
         name += f"/{stats_epochs}"
     if matmul_precision != mdgps.MATMUL_PRECISION:
@@ -366,15 +370,17 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
 
 
 @contextlib.contextmanager
-def _cuda_clocks(out: list, on: bool):
+def _cuda_clocks(out: list, on: bool, smem: list):
     """While tracing: the CUDA form's launches also return their clock cycles per phase, which each
-    run of the program appends to ``out`` ((program ints, cycles [phases + 1]) per launch)."""
+    run of the program appends to ``out`` ((program ints, cycles [phases + 1]) per launch); each
+    launch's shared memory per block (bytes) is appended to ``smem`` as it is traced."""
     if not on:
         yield
         return
     launch = gmr_cuda.launch
 
     def profiled(inp, smem_bytes):
+        smem.append(smem_bytes)
         theta, stats, cycles = launch(inp, smem_bytes, cycles=True)
         jax.debug.callback(lambda c: out.append((inp.program, np.asarray(c))), cycles)
         return theta, stats

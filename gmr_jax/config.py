@@ -352,7 +352,8 @@ class SStepConfig:
       weight_median_floor: weights above this take part in the median of the weight rule (1e-2).
       weight_clip: weights are clipped at weight_clip × median before dividing by it (2).
       impl: the S-step's form (``gmr_jax.sstep``, equal to round-off): "cuda" (GMR: all Adam
-        steps in one hand-written CUDA kernel, one thread block per seed; float32 on an NVIDIA
+        steps in one hand-written CUDA kernel, one thread block per seed, or a thread-block
+        cluster per seed where the seeds all fit on the GPU at once; float32 on an NVIDIA
         GPU, built with nvcc on first use; other policies: "packed"), "kernel" (GMR: all Adam
         steps in one Pallas kernel; other policies: "packed"), "packed" (one packed weight
         vector and data matrix, a few fused operations per minibatch step: fast on a GPU),

@@ -8,6 +8,7 @@ test here compares it with the packed form where one is (skipped in CI), and
 ``benchmarks.sstep --impl packed,cuda`` measures both. The emulation is a port, so a change to the
 .cu file's arithmetic needs the same change here to be checked in CI."""
 
+import os
 import re
 import shutil
 
@@ -531,6 +532,29 @@ def test_cuda_form_refuses_what_it_does_not_run():
     with pytest.raises(ValueError, match="hidden layer in each"):
         gmr_cuda.program(GMRConfig(decoder_hidden=()), gmr_kernel.layout(GMRConfig(decoder_hidden=()), 12, 6, 20),
                          20, 960, 0)
+
+
+def test_launch_forms_are_the_cu_files_and_set_only_within(monkeypatch):
+    """``FORMS`` are the launch forms the .cu file's dispatch builds (cluster·10000 + threads), the
+    cluster forms' threads per block those its choice uses; ``launch_form`` sets the two
+    variables the library reads at each launch only within, "auto" unsets them, and an unknown
+    form is one clear error."""
+    built = sorted(int(c) for c in re.findall(r"case (\d{5}): err = launch<", CU))
+    assert built == sorted(int(b) * 10000 + int(t) for b, t in (f.split("x") for f in gmr_cuda.FORMS))
+    assert "1x1024" in gmr_cuda.FORMS and "constexpr int CLUSTER_NT = 512;" in CU
+    assert {int(f.split("x")[0]) for f in gmr_cuda.FORMS} == {1, 2, 4, gmr_cuda.MAX_CLUSTER}
+    monkeypatch.setenv("GMR_JAX_CUDA_CLUSTER", "2")
+    monkeypatch.delenv("GMR_JAX_CUDA_THREADS", raising=False)
+    with gmr_cuda.launch_form("8x256"):
+        assert (os.environ["GMR_JAX_CUDA_CLUSTER"], os.environ["GMR_JAX_CUDA_THREADS"]) == ("8", "256")
+        with gmr_cuda.launch_form("auto"):
+            assert "GMR_JAX_CUDA_CLUSTER" not in os.environ and "GMR_JAX_CUDA_THREADS" not in os.environ
+        with gmr_cuda.launch_form(None):
+            assert os.environ["GMR_JAX_CUDA_CLUSTER"] == "8"
+    assert os.environ["GMR_JAX_CUDA_CLUSTER"] == "2" and "GMR_JAX_CUDA_THREADS" not in os.environ
+    with pytest.raises(ValueError, match=r"^CUDA launch form '8x1024': the built forms are 1x1024, .* \(or auto\)$"):
+        with gmr_cuda.launch_form("8x1024"):
+            pass
 
 
 def test_ablations_are_the_cu_files_macros_and_bad_names_are_one_line(monkeypatch):

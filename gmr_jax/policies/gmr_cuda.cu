@@ -1,5 +1,12 @@
 // GMR's S-step as one hand-written CUDA kernel: every Adam step of an S-step in one launch,
-// one thread block per seed, called from JAX through the XLA FFI (gmr_jax/policies/gmr_cuda.py).
+// one thread block per seed or, where the seeds all fit on the GPU at once, a thread-block cluster
+// of 2, 4 or 8 blocks per seed, called from JAX through the XLA FFI (gmr_jax/policies/gmr_cuda.py).
+//
+// In a cluster every block keeps a whole copy of the state (the program, θ, the buffers) and runs
+// a share of each phase's items (32 consecutive items per warp, as with one block); an item's
+// results go into every block's copy through distributed shared memory, and the cluster's
+// barrier ends the phase. Each item computes what it computes with one block, in the same order,
+// so the trained weights are the same bit for bit whatever the launch form.
 //
 // The kernel runs a per-step *program* that the Python side builds from the layout (gmr_cuda.py
 // ``program``): a list of phases, each a list of tasks whose items the block's threads share,
@@ -795,57 +802,63 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   if constexpr (C > 1) cg::this_cluster().sync();
 }
 
-// One launch of C blocks per seed (a cluster of C blocks for C > 1).
+// The launch of C blocks of NT threads per seed (a cluster of C blocks for C > 1) into cfg, its
+// cluster attribute into attr; sets the kernel's shared memory.
 template <int C, int NT>
-cudaError_t launch(const Args& a, long long seeds, int64_t smem_bytes, cudaStream_t stream) {
-  cudaError_t err = cudaFuncSetAttribute(gmr_sstep_kernel<C, NT>, cudaFuncAttributeMaxDynamicSharedMemorySize,
-                                         (int)smem_bytes);
-  if (err != cudaSuccess) return err;
-  cudaLaunchConfig_t cfg{};
+cudaError_t configure(cudaLaunchConfig_t& cfg, cudaLaunchAttribute (&attr)[1], long long seeds, int64_t smem_bytes,
+                      cudaStream_t stream) {
+  cfg = cudaLaunchConfig_t{};
   cfg.gridDim = dim3((unsigned)(seeds * C));
   cfg.blockDim = dim3(NT);
   cfg.dynamicSmemBytes = (size_t)smem_bytes;
   cfg.stream = stream;
-  cudaLaunchAttribute attr[1];
   attr[0].id = cudaLaunchAttributeClusterDimension;
   attr[0].val.clusterDim.x = C;
   attr[0].val.clusterDim.y = 1;
   attr[0].val.clusterDim.z = 1;
   cfg.attrs = attr;
   cfg.numAttrs = C > 1 ? 1 : 0;
-  err = cudaLaunchKernelEx(&cfg, gmr_sstep_kernel<C, NT>, a);
-  if (err != cudaSuccess) return err;
-  return cudaGetLastError();
+  return cudaFuncSetAttribute(gmr_sstep_kernel<C, NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
 }
 
-// How many clusters of C blocks (CLUSTER_NT threads each) the GPU runs at once.
-int max_clusters(int C, int64_t smem_bytes) {
-  cudaLaunchConfig_t cfg{};
-  cfg.gridDim = dim3((unsigned)C);
-  cfg.blockDim = dim3(CLUSTER_NT);
-  cfg.dynamicSmemBytes = (size_t)smem_bytes;
+template <int C, int NT>
+cudaError_t launch(const Args& a, long long seeds, int64_t smem_bytes, cudaStream_t stream) {
+  cudaLaunchConfig_t cfg;
   cudaLaunchAttribute attr[1];
-  attr[0].id = cudaLaunchAttributeClusterDimension;
-  attr[0].val.clusterDim.x = C;
-  attr[0].val.clusterDim.y = 1;
-  attr[0].val.clusterDim.z = 1;
-  cfg.attrs = attr;
-  cfg.numAttrs = 1;
+  cudaError_t err = configure<C, NT>(cfg, attr, seeds, smem_bytes, stream);
+  if (err == cudaSuccess) err = cudaLaunchKernelEx(&cfg, gmr_sstep_kernel<C, NT>, a);
+  return err == cudaSuccess ? cudaGetLastError() : err;
+}
+
+// How many clusters of C blocks (CLUSTER_NT threads each) the GPU runs at once (0 where it
+// runs none, e.g. a GPU without clusters).
+template <int C>
+int max_clusters(int64_t smem_bytes) {
+  cudaLaunchConfig_t cfg;
+  cudaLaunchAttribute attr[1];
   int n = 0;
-  cudaError_t err;
-  switch (C) {
-    case 8: err = cudaFuncSetAttribute(gmr_sstep_kernel<8, CLUSTER_NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
-      if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<8, CLUSTER_NT>, &cfg); break;
-    case 4: err = cudaFuncSetAttribute(gmr_sstep_kernel<4, CLUSTER_NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
-      if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<4, CLUSTER_NT>, &cfg); break;
-    default: err = cudaFuncSetAttribute(gmr_sstep_kernel<2, CLUSTER_NT>, cudaFuncAttributeMaxDynamicSharedMemorySize, (int)smem_bytes);
-      if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<2, CLUSTER_NT>, &cfg);
-  }
+  cudaError_t err = configure<C, CLUSTER_NT>(cfg, attr, 1, smem_bytes, nullptr);
+  if (err == cudaSuccess) err = cudaOccupancyMaxActiveClusters(&n, gmr_sstep_kernel<C, CLUSTER_NT>, &cfg);
   if (err != cudaSuccess) {
-    cudaGetLastError();  // a GPU without clusters: one block per seed
+    cudaGetLastError();  // clear the error: one block per seed instead
     return 0;
   }
   return n;
+}
+
+// The launch form, blocks per seed · 10000 + threads per block: $GMR_JAX_CUDA_CLUSTER blocks per
+// seed with $GMR_JAX_CUDA_THREADS threads each where set (profiles), else the largest cluster
+// whose seeds all run at once, or one block of NT_MAX threads per seed.
+int launch_form(long long seeds, int64_t smem_bytes) {
+  int cluster = 0, threads = 0;
+  if (const char* env = std::getenv("GMR_JAX_CUDA_CLUSTER")) cluster = std::atoi(env);
+  if (const char* env = std::getenv("GMR_JAX_CUDA_THREADS")) threads = std::atoi(env);
+  if (cluster == 0)
+    cluster = seeds <= max_clusters<8>(smem_bytes) ? 8
+              : seeds <= max_clusters<4>(smem_bytes) ? 4
+              : seeds <= max_clusters<2>(smem_bytes) ? 2 : 1;
+  if (threads == 0) threads = cluster == 1 ? NT_MAX : CLUSTER_NT;
+  return cluster * 10000 + threads;
 }
 
 long long per_seed(const ffi::AnyBuffer& b, long long seeds) { return (long long)b.element_count() / seeds; }
@@ -884,23 +897,8 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
   a.s_x = per_seed(scale, seeds); a.s_theta = per_seed(theta0, seeds); a.s_program = per_seed(program, seeds);
   a.s_floats = per_seed(floats, seeds); a.s_stats = per_seed(*stats, seeds);
   a.s_cycles = per_seed(*cycles, seeds);
-  // the launch form: $GMR_JAX_CUDA_CLUSTER blocks per seed with $GMR_JAX_CUDA_THREADS threads
-  // each where set (profiles), else the largest cluster whose seeds all run at once
-  int cluster = 0, threads = 0;
-  if (const char* env = std::getenv("GMR_JAX_CUDA_CLUSTER")) cluster = std::atoi(env);
-  if (const char* env = std::getenv("GMR_JAX_CUDA_THREADS")) threads = std::atoi(env);
-  if (cluster == 0) {
-    cluster = 1;
-    for (int c : {8, 4, 2}) {
-      if (seeds <= max_clusters(c, smem_bytes)) {
-        cluster = c;
-        break;
-      }
-    }
-  }
-  if (threads == 0) threads = cluster == 1 ? NT_MAX : CLUSTER_NT;
   cudaError_t err = cudaErrorInvalidConfiguration;
-  switch (cluster * 10000 + threads) {
+  switch (launch_form(seeds, smem_bytes)) {
     case 11024: err = launch<1, 1024>(a, seeds, smem_bytes, stream); break;
     case 20512: err = launch<2, 512>(a, seeds, smem_bytes, stream); break;
     case 40512: err = launch<4, 512>(a, seeds, smem_bytes, stream); break;
@@ -916,6 +914,9 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
 }
 
 }  // namespace
+
+// The launch form the library takes for a launch of ``seeds`` seeds (for benchmarks' records).
+extern "C" int GmrSstepCudaForm(long long seeds, long long smem_bytes) { return launch_form(seeds, smem_bytes); }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(GmrSstepCuda, gmr_sstep,
                               ffi::Ffi::Bind()

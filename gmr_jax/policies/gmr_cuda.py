@@ -1,7 +1,11 @@
 """GMR's S-step as one hand-written CUDA kernel (``gmr_cuda.cu``), called through the XLA FFI.
 
 The S-step's ``impl="cuda"``: every Adam step of an S-step in one launch, one thread block per
-seed (under ``jax.vmap`` the seeds are the launch's blocks), float32 on an NVIDIA GPU. It computes
+seed (under ``jax.vmap`` the seeds are the launch's blocks), float32 on an NVIDIA GPU. Where the
+seeds' clusters all fit on the GPU at once (``cudaOccupancyMaxActiveClusters``), each seed runs
+on a thread-block cluster of 8 (else 4, 2) blocks of 512 threads instead, which share each phase's
+items and train the same weights bit for bit (``FORMS``, ``launch_form``; ``$GMR_JAX_CUDA_CLUSTER`` and
+``$GMR_JAX_CUDA_THREADS`` force a form, for profiles). It computes
 the packed form's step (the same minibatches, noise, closed forms and Adam steps as
 ``gmr_kernel``'s Pallas kernel, whose layout it shares) with the products summed in another order,
 so it agrees with the packed form to round-off (``benchmarks.sstep --impl cuda,packed`` measures
@@ -427,6 +431,15 @@ def library() -> ctypes.CDLL:
     lib = ctypes.cdll.LoadLibrary(str(so))
     jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.GmrSstepCuda), platform="CUDA")
     return lib
+
+
+def chosen_form(seeds: int, smem_bytes: int) -> str:
+    """The launch form (``FORMS``) the library takes for ``seeds`` seeds of a program that needs
+    ``smem_bytes`` of shared memory, as set now (``launch_form``) and on this GPU."""
+    lib = library()
+    lib.GmrSstepCudaForm.restype = ctypes.c_int
+    code = lib.GmrSstepCudaForm(ctypes.c_longlong(seeds), ctypes.c_longlong(smem_bytes))
+    return f"{code // 10000}x{code % 10000}"
 
 
 class Inputs(NamedTuple):
