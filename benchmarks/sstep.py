@@ -286,9 +286,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
         exact = _flat_weights(net64, args.seeds)
         params, data = _as_float(params, dtype), _as_float(data, dtype)
     clocks = []  # the CUDA form's profile: clock cycles per phase of each S-step run
-    smem = []  # the CUDA form's shared memory per block (bytes), seen while tracing
     t0 = time.perf_counter()
-    with jax.default_matmul_precision(matmul_precision), traced_as(), _cuda_clocks(clocks, impl == "cuda", smem):
+    with jax.default_matmul_precision(matmul_precision), traced_as(), _cuda_clocks(clocks, impl == "cuda"):
         compiled = fn.lower(params, data, jax.random.PRNGKey(2)).compile(compiler_options=options_given or None)
     compile_s = time.perf_counter() - t0
     with traced_as():
@@ -329,8 +328,8 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
            "num_warps": gmr_kernel.NUM_WARPS if impl == "kernel" else None,
            "dot": gmr_kernel.DOT if impl == "kernel" else None,
            "cuda_form": cuda_form,
-           # the form the library took (for "auto", its choice for these seeds on this GPU)
-           "cuda_form_used": gmr_cuda.chosen_form(args.seeds, smem[0]) if smem else None,
+           # the form the kernel reports it ran (for "auto", the library's choice for these seeds)
+           "cuda_form_used": _cuda_form_used(clocks),
            "rows": int(data.x.shape[-2]), "batch_size": cfg.sstep.batch_size, "adam_steps": steps, "compile_s": compile_s,
            "run_s": run_s, "us_per_step": 1e6 * run_s / steps, "finite": finite, "seeds": args.seeds,
            "body_ops": body, "ops_per_step": sum(body.values()) / per_iteration, "profile": profile,
@@ -370,19 +369,18 @@ def measure(algorithm: str, scenario: str, unroll: int, impl: str, args, dtype,
 
 
 @contextlib.contextmanager
-def _cuda_clocks(out: list, on: bool, smem: list):
-    """While tracing: the CUDA form's launches also return their clock cycles per phase, which each
-    run of the program appends to ``out`` ((program ints, cycles [phases + 1]) per launch); each
-    launch's shared memory per block (bytes) is appended to ``smem`` as it is traced."""
+def _cuda_clocks(out: list, on: bool):
+    """While tracing: the CUDA form's launches also return their clock cycles per phase and the
+    launch form that ran, which each run of the program appends to ``out`` ((program ints, cycles
+    [phases + 1], form) per launch)."""
     if not on:
         yield
         return
     launch = gmr_cuda.launch
 
     def profiled(inp, smem_bytes):
-        smem.append(smem_bytes)
-        theta, stats, cycles = launch(inp, smem_bytes, cycles=True)
-        jax.debug.callback(lambda c: out.append((inp.program, np.asarray(c))), cycles)
+        theta, stats, cycles, form = launch(inp, smem_bytes, cycles=True)
+        jax.debug.callback(lambda c, f: out.append((inp.program, np.asarray(c), np.asarray(f))), cycles, form)
         return theta, stats
     gmr_cuda.launch = profiled
     try:
@@ -391,10 +389,18 @@ def _cuda_clocks(out: list, on: bool, smem: list):
         gmr_cuda.launch = launch
 
 
+def _cuda_form_used(clocks) -> str | None:
+    """The launch form the first timed run reports (every seed's; one form per launch)."""
+    if not clocks:
+        return None
+    codes = {int(c) for c in np.asarray((clocks[1] if len(clocks) > 1 else clocks[0])[2]).reshape(-1)}
+    return ",".join(gmr_cuda.form_name(c) for c in sorted(codes))
+
+
 def _cuda_phases(cfg, data, clocks, steps: int, us_per_step: float) -> list[dict]:
     """The first timed run's clock cycles per phase as µs per Adam step (the cycles' shares of
     the measured step) with each phase's tasks. Seeds side by side: the first seed's block."""
-    ints, cycles = clocks[1] if len(clocks) > 1 else clocks[0]
+    ints, cycles, _ = clocks[1] if len(clocks) > 1 else clocks[0]
     cycles = np.asarray(cycles).reshape(-1, np.asarray(cycles).shape[-1])[0]
     dX, dU = data.x.shape[-1], data.tgt_mu.shape[-1]
     names = [L.name for L in gmr_cuda.compact(gmr_kernel.layout(cfg.gmr, dX, dU, cfg.sstep.batch_size))]

@@ -8,7 +8,6 @@ test here compares it with the packed form where one is (skipped in CI), and
 ``benchmarks.sstep --impl packed,cuda`` measures both. The emulation is a port, so a change to the
 .cu file's arithmetic needs the same change here to be checked in CI."""
 
-import os
 import re
 import shutil
 
@@ -436,22 +435,35 @@ def test_kernel_equals_the_packed_form_on_the_gpu(name):
 
 
 @pytest.mark.skipif(jax.default_backend() != "gpu" or shutil.which("nvcc") is None, reason="needs an NVIDIA GPU and nvcc")
-def test_every_launch_form_trains_the_same_weights_on_the_gpu():
+@pytest.mark.parametrize("statistics_epochs", ["all", "last"])
+def test_every_launch_form_trains_the_same_weights_on_the_gpu(monkeypatch, statistics_epochs):
     """A thread-block cluster's blocks run each phase's items as one block does, each item the
     same arithmetic in the same order, and keep identical copies of the state: every launch form
-    trains bit-identical weights and statistics. The one exception is the total loss's β·Σθ²,
-    whose sum the blocks split: any order of n positive terms lies within (n − 1)·ε of the sum,
-    plus the rounding of the total itself."""
+    (each reports the form it ran) trains bit-identical weights and statistics, with every
+    epoch's statistics and with the last epoch's only (where the steps before skip the head's
+    per-row loss terms). The one exception is the total loss's β·Σθ², whose sum the blocks
+    split: any order of n positive terms lies within (n − 1)·ε of the sum, plus the rounding of
+    the total itself."""
     pol, _ = test_sstep._policy("gmr")
     data = jax.tree_util.tree_map(lambda a: a.astype(jnp.float32), test_sstep._full_data(13))
     params = pol.init(jax.random.key(2), test_sstep.dX, test_sstep.dU, jnp.float32)
-    scfg = SStepConfig(epochs=3, statistics_epochs="all")
+    scfg = SStepConfig(epochs=3, statistics_epochs=statistics_epochs)
+    launch, ran = gmr_cuda.launch, []
+
+    def reporting(inp, smem_bytes):
+        theta, stats, _, form = launch(inp, smem_bytes, cycles=True)
+        jax.debug.callback(lambda f: ran.append(gmr_cuda.form_name(int(np.asarray(f).reshape(-1)[0]))), form)
+        return theta, stats
+
+    monkeypatch.setattr(gmr_cuda, "launch", reporting)
     runs = {}
     for form in gmr_cuda.FORMS:
         with gmr_cuda.launch_form(form):
-            # a new jit per form: the library reads the form at each launch
-            runs[form] = jax.jit(lambda p, d, k: test_sstep.sstep(pol, p, d, k, scfg, impl="cuda"))(
-                params, data, jax.random.key(3))
+            # a new jit per form: the form is part of the program traced
+            runs[form] = jax.block_until_ready(jax.jit(lambda p, d, k: test_sstep.sstep(pol, p, d, k, scfg, impl="cuda"))(
+                params, data, jax.random.key(3)))
+        jax.effects_barrier()  # the callback has run
+        assert ran[-1] == form
     ref, ref_m = runs["1x1024"]
     assert not np.allclose(ravel_pytree(ref.net)[0], ravel_pytree(params.net)[0], atol=1e-3)
     n = ravel_pytree(ref.net)[0].size
@@ -534,24 +546,26 @@ def test_cuda_form_refuses_what_it_does_not_run():
                          20, 960, 0)
 
 
-def test_launch_forms_are_the_cu_files_and_set_only_within(monkeypatch):
-    """``FORMS`` are the launch forms the .cu file's dispatch builds (cluster·10000 + threads), the
-    cluster forms' threads per block those its choice uses; ``launch_form`` sets the two
-    variables the library reads at each launch only within, "auto" unsets them, and an unknown
-    form is one clear error."""
-    built = sorted(int(c) for c in re.findall(r"case (\d{5}): err = launch<", CU))
-    assert built == sorted(int(b) * 10000 + int(t) for b, t in (f.split("x") for f in gmr_cuda.FORMS))
+def test_launch_forms_are_the_cu_files_and_set_only_within():
+    """``FORMS`` are the launch forms the .cu file's dispatch builds (each case's code,
+    cluster·10000 + threads, launches that template), the cluster forms' threads per block those
+    its choice uses; ``launch_form`` sets the form of the programs traced within only, and an
+    unknown form is one clear error."""
+    built = sorted((int(code), int(b), int(t)) for code, b, t in re.findall(r"case (\d+): err = launch<(\d+), (\d+)>", CU))
+    assert built == sorted((gmr_cuda.form_code(f), *map(int, f.split("x"))) for f in gmr_cuda.FORMS)
+    assert all(code == b * 10000 + t for code, b, t in built)
     assert "1x1024" in gmr_cuda.FORMS and "constexpr int CLUSTER_NT = 512;" in CU
     assert {int(f.split("x")[0]) for f in gmr_cuda.FORMS} == {1, 2, 4, gmr_cuda.MAX_CLUSTER}
-    monkeypatch.setenv("GMR_JAX_CUDA_CLUSTER", "2")
-    monkeypatch.delenv("GMR_JAX_CUDA_THREADS", raising=False)
+    assert gmr_cuda.form_code("auto") == 0 and gmr_cuda.form_name(0) == "auto"
+    assert all(gmr_cuda.form_name(gmr_cuda.form_code(f)) == f for f in gmr_cuda.FORMS)
+    assert gmr_cuda._FORM.get() == "auto"
     with gmr_cuda.launch_form("8x256"):
-        assert (os.environ["GMR_JAX_CUDA_CLUSTER"], os.environ["GMR_JAX_CUDA_THREADS"]) == ("8", "256")
+        assert gmr_cuda._FORM.get() == "8x256"
         with gmr_cuda.launch_form("auto"):
-            assert "GMR_JAX_CUDA_CLUSTER" not in os.environ and "GMR_JAX_CUDA_THREADS" not in os.environ
+            assert gmr_cuda._FORM.get() == "auto"
         with gmr_cuda.launch_form(None):
-            assert os.environ["GMR_JAX_CUDA_CLUSTER"] == "8"
-    assert os.environ["GMR_JAX_CUDA_CLUSTER"] == "2" and "GMR_JAX_CUDA_THREADS" not in os.environ
+            assert gmr_cuda._FORM.get() == "8x256"
+    assert gmr_cuda._FORM.get() == "auto"
     with pytest.raises(ValueError, match=r"^CUDA launch form '8x1024': the built forms are 1x1024, .* \(or auto\)$"):
         with gmr_cuda.launch_form("8x1024"):
             pass
@@ -634,4 +648,18 @@ def test_kernel_builds_for_hopper_without_spills(tmp_path, monkeypatch):
     messages = gmr_cuda.build(out, flags)
     assert out.stat().st_size > 0
     lines = [ln for ln in messages.splitlines() if "spill" in ln]
-    assert lines and all("0 bytes spill stores, 0 bytes spill loads" in ln for ln in lines), lines
+    # one kernel per launch form, each without spills
+    assert len(lines) == len(gmr_cuda.FORMS), messages
+    assert all("0 bytes spill stores, 0 bytes spill loads" in ln for ln in lines), lines
+
+
+@pytest.mark.skipif(shutil.which("nvcc") is None, reason="needs nvcc")
+def test_kernel_builds_for_gpus_without_clusters(tmp_path, monkeypatch):
+    """For a GPU before Hopper (sm_80: no thread-block clusters) the device code still compiles:
+    its cluster forms become traps that the host never launches there."""
+    monkeypatch.delenv("GMR_JAX_CUDA_ABLATE", raising=False)
+    out = tmp_path / "gmr_cuda_sm80.cubin"
+    host = ("-shared", "-Xcompiler", "-fPIC")
+    flags = [f for f in gmr_cuda._nvcc_flags() if not f.startswith("-arch") and f not in host]
+    gmr_cuda.build(out, flags + ["-arch=sm_80", "-cubin"])
+    assert out.stat().st_size > 0

@@ -46,13 +46,21 @@
 
 #include <cmath>
 #include <cstdint>
-#include <cstdlib>
 #include <string>
 
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
 namespace cg = cooperative_groups;
+
+// Thread-block clusters need compute capability 9.0: for older GPUs the cluster forms are built
+// as traps (the host never launches them there: max_clusters finds none, and a forced form fails
+// at launch), so that the one-block form still builds.
+#if !defined(__CUDA_ARCH__) || __CUDA_ARCH__ >= 900
+#define GMR_CUDA_CLUSTERS 1
+#else
+#define GMR_CUDA_CLUSTERS 0
+#endif
 
 namespace {
 
@@ -115,6 +123,7 @@ struct Args {
   float* v;               // [n]
   float* stats;           // [steps, NSTATS]
   float* cycles;          // [phases + 1]: clock cycles of each phase (and of the statistics), all steps
+  int32_t* form;          // [1]: the launch form that ran, blocks per seed · 10000 + threads per block
   int steps;
   // per-seed strides (elements)
   long long s_idx, s_eps, s_steps, s_xn, s_sig, s_u, s_uu, s_ux, s_b, s_x, s_theta, s_program, s_floats, s_stats,
@@ -143,32 +152,63 @@ __device__ __forceinline__ float leaky(float x, float slope) { return x >= 0.f ?
 // the whole state (θ, the program's buffers) and runs a share of each phase's items; an item's
 // result goes into every block's copy: the block's own first, then the others' through
 // distributed shared memory, so that after the cluster's barrier every copy is the same.
-template <int C>
-__device__ __forceinline__ void put(const Ctx& c, float* p, float v) {
+template <typename T>
+struct Same { using type = T; };
+
+template <int C, typename T>
+__device__ __forceinline__ void put(const Ctx& c, T* p, typename Same<T>::type v) {
   *p = v;
   if constexpr (C > 1) {
+#if GMR_CUDA_CLUSTERS
     cg::cluster_group cl = cg::this_cluster();
 #pragma unroll
     for (int d = 1; d < C; ++d) *cl.map_shared_rank(p, (c.rank + d) % C) = v;
+#else
+    __trap();
+#endif
   }
 }
 
+// put of four floats at p (16-byte aligned).
 template <int C>
 __device__ __forceinline__ void put4(const Ctx& c, float* p, float4 v) {
-  *reinterpret_cast<float4*>(p) = v;
-  if constexpr (C > 1) {
-    cg::cluster_group cl = cg::this_cluster();
-#pragma unroll
-    for (int d = 1; d < C; ++d) *reinterpret_cast<float4*>(cl.map_shared_rank(p, (c.rank + d) % C)) = v;
-  }
+  put<C>(c, reinterpret_cast<float4*>(p), v);
 }
 
 // The barrier between phases: the block's, or the cluster's (which also orders the other
 // blocks' stores into this block's shared memory before the reads that follow).
 template <int C>
 __device__ __forceinline__ void barrier() {
-  if constexpr (C > 1) cg::this_cluster().sync();
-  else __syncthreads();
+  if constexpr (C > 1) {
+#if GMR_CUDA_CLUSTERS
+    cg::this_cluster().sync();
+#else
+    __trap();
+#endif
+  } else {
+    __syncthreads();
+  }
+}
+
+// The block's rank in its seed's cluster.
+template <int C>
+__device__ __forceinline__ int cluster_rank() {
+#if GMR_CUDA_CLUSTERS
+  if constexpr (C > 1) return (int)cg::this_cluster().block_rank();
+#endif
+  return 0;
+}
+
+// Stores x into slot i of the first block's array a (shared memory).
+template <int C>
+__device__ __forceinline__ void put_first(float* a, int i, float x) {
+#if GMR_CUDA_CLUSTERS
+  if constexpr (C > 1) {
+    *cg::this_cluster().map_shared_rank(&a[i], 0) = x;
+    return;
+  }
+#endif
+  a[i] = x;
 }
 
 // ---------------------------------------------------------------- the networks' tasks
@@ -684,13 +724,13 @@ template <int C, int NT>
 __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
   extern __shared__ float sm[];
   const int seed = blockIdx.x / C;
-  const int rank = C > 1 ? (int)cg::this_cluster().block_rank() : 0;
+  const int rank = cluster_rank<C>();
   a.idx += seed * a.s_idx; a.eps += seed * a.s_eps; a.c1 += seed * a.s_steps; a.c2 += seed * a.s_steps;
   a.xn += seed * a.s_xn; a.xe += seed * a.s_xn; a.sig += seed * a.s_sig; a.tgt += seed * a.s_u;
   a.prc += seed * a.s_uu; a.Kp += seed * a.s_ux; a.wt += seed * a.s_b; a.logdet += seed * a.s_b;
   a.scale += seed * a.s_x; a.theta0 += seed * a.s_theta; a.program += seed * a.s_program;
   a.floats += seed * a.s_floats; a.theta += seed * a.s_theta; a.m += seed * a.s_theta;
-  a.v += seed * a.s_theta; a.stats += seed * a.s_stats; a.cycles += seed * a.s_cycles;
+  a.v += seed * a.s_theta; a.stats += seed * a.s_stats; a.cycles += seed * a.s_cycles; a.form += seed;
 
   int* prog = reinterpret_cast<int*>(sm);
   const int np = a.program[H_PROGRAM];
@@ -754,8 +794,8 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
     if (step >= prog[H_STATS_FROM]) {
       float l2 = block_sum<NT>(c.l2, red);
       if constexpr (C > 1) {  // the blocks' sums, added in rank order in the first block
-        if (threadIdx.x == 0) *cg::this_cluster().map_shared_rank(&l2s[rank], 0) = l2;
-        cg::this_cluster().sync();
+        if (threadIdx.x == 0) put_first<C>(l2s, rank, l2);
+        barrier<C>();
         if (threadIdx.x == 0 && rank == 0) {
           l2 = 0.f;
           for (int q = 0; q < C; ++q) l2 = l2 + l2s[q];
@@ -798,8 +838,9 @@ __global__ void __launch_bounds__(NT, 1) gmr_sstep_kernel(Args a) {
       for (int e = threadIdx.x; e < K1 * N; e += NT) a.theta[L[0] + e] = sm[L[1] + (e / N) * S + e % N];
     }
   }
+  if (rank == 0 && threadIdx.x == 0) *a.form = C * 10000 + NT;
   // no block leaves while another may still write into its shared memory
-  if constexpr (C > 1) cg::this_cluster().sync();
+  if constexpr (C > 1) barrier<C>();
 }
 
 // The launch of C blocks of NT threads per seed (a cluster of C blocks for C > 1) into cfg, its
@@ -827,7 +868,10 @@ cudaError_t launch(const Args& a, long long seeds, int64_t smem_bytes, cudaStrea
   cudaLaunchAttribute attr[1];
   cudaError_t err = configure<C, NT>(cfg, attr, seeds, smem_bytes, stream);
   if (err == cudaSuccess) err = cudaLaunchKernelEx(&cfg, gmr_sstep_kernel<C, NT>, a);
-  return err == cudaSuccess ? cudaGetLastError() : err;
+  // a failed call's error is also the runtime's last error: read (and clear) it here, so that
+  // it is not reported again by a later launch
+  const cudaError_t last = cudaGetLastError();
+  return err == cudaSuccess ? last : err;
 }
 
 // How many clusters of C blocks (CLUSTER_NT threads each) the GPU runs at once (0 where it
@@ -846,19 +890,14 @@ int max_clusters(int64_t smem_bytes) {
   return n;
 }
 
-// The launch form, blocks per seed · 10000 + threads per block: $GMR_JAX_CUDA_CLUSTER blocks per
-// seed with $GMR_JAX_CUDA_THREADS threads each where set (profiles), else the largest cluster
-// whose seeds all run at once, or one block of NT_MAX threads per seed.
-int launch_form(long long seeds, int64_t smem_bytes) {
-  int cluster = 0, threads = 0;
-  if (const char* env = std::getenv("GMR_JAX_CUDA_CLUSTER")) cluster = std::atoi(env);
-  if (const char* env = std::getenv("GMR_JAX_CUDA_THREADS")) threads = std::atoi(env);
-  if (cluster == 0)
-    cluster = seeds <= max_clusters<8>(smem_bytes) ? 8
-              : seeds <= max_clusters<4>(smem_bytes) ? 4
-              : seeds <= max_clusters<2>(smem_bytes) ? 2 : 1;
-  if (threads == 0) threads = cluster == 1 ? NT_MAX : CLUSTER_NT;
-  return cluster * 10000 + threads;
+// The launch form, blocks per seed · 10000 + threads per block: ``form`` where given (not 0), else
+// the largest cluster whose seeds all run at once, or one block of NT_MAX threads per seed.
+int64_t launch_form(long long seeds, int64_t smem_bytes, int64_t form) {
+  if (form != 0) return form;
+  const int cluster = seeds <= max_clusters<8>(smem_bytes) ? 8
+                      : seeds <= max_clusters<4>(smem_bytes) ? 4
+                      : seeds <= max_clusters<2>(smem_bytes) ? 2 : 1;
+  return cluster * 10000 + (cluster == 1 ? NT_MAX : CLUSTER_NT);
 }
 
 long long per_seed(const ffi::AnyBuffer& b, long long seeds) { return (long long)b.element_count() / seeds; }
@@ -868,8 +907,8 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
                      ffi::AnyBuffer prc, ffi::AnyBuffer Kp, ffi::AnyBuffer wt, ffi::AnyBuffer logdet,
                      ffi::AnyBuffer scale, ffi::AnyBuffer theta0, ffi::AnyBuffer program, ffi::AnyBuffer floats,
                      ffi::Result<ffi::AnyBuffer> theta, ffi::Result<ffi::AnyBuffer> m, ffi::Result<ffi::AnyBuffer> v,
-                     ffi::Result<ffi::AnyBuffer> stats, ffi::Result<ffi::AnyBuffer> cycles, int64_t steps,
-                     int64_t smem_bytes) {
+                     ffi::Result<ffi::AnyBuffer> stats, ffi::Result<ffi::AnyBuffer> cycles,
+                     ffi::Result<ffi::AnyBuffer> form_used, int64_t steps, int64_t smem_bytes, int64_t form) {
   if (idx.element_type() != ffi::DataType::S32 || program.element_type() != ffi::DataType::S32 ||
       eps.element_type() != ffi::DataType::F32 || theta0.element_type() != ffi::DataType::F32)
     return ffi::Error::InvalidArgument("gmr_sstep_cuda: idx and program must be int32, the rest float32");
@@ -890,6 +929,7 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
   a.theta = theta->typed_data<float>(); a.m = m->typed_data<float>(); a.v = v->typed_data<float>();
   a.stats = stats->typed_data<float>();
   a.cycles = cycles->typed_data<float>();
+  a.form = form_used->typed_data<int32_t>();
   a.steps = (int)steps;
   a.s_idx = per_seed(idx, seeds); a.s_eps = per_seed(eps, seeds); a.s_steps = per_seed(c1, seeds);
   a.s_xn = per_seed(xn, seeds); a.s_sig = per_seed(sig, seeds); a.s_u = per_seed(tgt, seeds);
@@ -898,15 +938,15 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
   a.s_floats = per_seed(floats, seeds); a.s_stats = per_seed(*stats, seeds);
   a.s_cycles = per_seed(*cycles, seeds);
   cudaError_t err = cudaErrorInvalidConfiguration;
-  switch (launch_form(seeds, smem_bytes)) {
+  switch (launch_form(seeds, smem_bytes, form)) {
     case 11024: err = launch<1, 1024>(a, seeds, smem_bytes, stream); break;
     case 20512: err = launch<2, 512>(a, seeds, smem_bytes, stream); break;
     case 40512: err = launch<4, 512>(a, seeds, smem_bytes, stream); break;
     case 80256: err = launch<8, 256>(a, seeds, smem_bytes, stream); break;
     case 80512: err = launch<8, 512>(a, seeds, smem_bytes, stream); break;
     default:
-      return ffi::Error::InvalidArgument("gmr_sstep_cuda: $GMR_JAX_CUDA_CLUSTER and $GMR_JAX_CUDA_THREADS name no "
-                                         "built form (1x1024, 2x512, 4x512, 8x256, 8x512): unset them");
+      return ffi::Error::InvalidArgument("gmr_sstep_cuda: the form attribute names no built form (10000 · blocks "
+                                         "+ threads: 11024, 20512, 40512, 80256, 80512; 0 for the library's choice)");
   }
   if (err != cudaSuccess)
     return ffi::Error::Internal(std::string("gmr_sstep_cuda: ") + cudaGetErrorString(err));
@@ -914,9 +954,6 @@ ffi::Error gmr_sstep(cudaStream_t stream, ffi::AnyBuffer idx, ffi::AnyBuffer eps
 }
 
 }  // namespace
-
-// The launch form the library takes for a launch of ``seeds`` seeds (for benchmarks' records).
-extern "C" int GmrSstepCudaForm(long long seeds, long long smem_bytes) { return launch_form(seeds, smem_bytes); }
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(GmrSstepCuda, gmr_sstep,
                               ffi::Ffi::Bind()
@@ -942,5 +979,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(GmrSstepCuda, gmr_sstep,
                                   .Ret<ffi::AnyBuffer>()  // v
                                   .Ret<ffi::AnyBuffer>()  // stats
                                   .Ret<ffi::AnyBuffer>()  // cycles
+                                  .Ret<ffi::AnyBuffer>()  // form
                                   .Attr<int64_t>("steps")
-                                  .Attr<int64_t>("smem_bytes"));
+                                  .Attr<int64_t>("smem_bytes")
+                                  .Attr<int64_t>("form"));

@@ -4,8 +4,8 @@ The S-step's ``impl="cuda"``: every Adam step of an S-step in one launch, one th
 seed (under ``jax.vmap`` the seeds are the launch's blocks), float32 on an NVIDIA GPU. Where the
 seeds' clusters all fit on the GPU at once (``cudaOccupancyMaxActiveClusters``), each seed runs
 on a thread-block cluster of 8 (else 4, 2) blocks of 512 threads instead, which share each phase's
-items and train the same weights bit for bit (``FORMS``, ``launch_form``; ``$GMR_JAX_CUDA_CLUSTER`` and
-``$GMR_JAX_CUDA_THREADS`` force a form, for profiles). It computes
+items and train the same weights bit for bit (``FORMS``; ``launch_form`` forces a form while
+tracing, for profiles and tests). It computes
 the packed form's step (the same minibatches, noise, closed forms and Adam steps as
 ``gmr_kernel``'s Pallas kernel, whose layout it shares) with the products summed in another order,
 so it agrees with the packed form to round-off (``benchmarks.sstep --impl cuda,packed`` measures
@@ -31,6 +31,7 @@ compiler, and registered as the FFI target ``gmr_sstep_cuda``.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import ctypes
 import functools
 import hashlib
@@ -83,31 +84,38 @@ SMEM_LIMIT = 227 * 1024 - 4 * (len(FLOATS) + MAX_CLUSTER)
 ABLATIONS = ("moments", "wgrad_sums", "fwd_sums", "ingrad_sums", "head", "barriers")
 
 
+# The launch form that ``launch`` puts into the programs it traces ("auto": the library's choice).
+_FORM = contextvars.ContextVar("gmr_cuda_form", default="auto")
+
+
+def form_code(form: str) -> int:
+    """A launch form as the library's ``form`` attribute: blocks · 10000 + threads ("auto": 0)."""
+    if form == "auto":
+        return 0
+    if form not in FORMS:
+        raise ValueError(f"CUDA launch form {form!r}: the built forms are {', '.join(FORMS)} (or auto)")
+    blocks, threads = form.split("x")
+    return int(blocks) * 10000 + int(threads)
+
+
+def form_name(code: int) -> str:
+    """``form_code``'s inverse."""
+    return "auto" if code == 0 else f"{code // 10000}x{code % 10000}"
+
+
 @contextlib.contextmanager
 def launch_form(form: str | None):
-    """Within: the kernel launches in ``form`` (one of ``FORMS``; "auto": the library's choice; None:
-    as set outside), through ``$GMR_JAX_CUDA_CLUSTER`` and ``$GMR_JAX_CUDA_THREADS``, which the
-    library reads at each launch. The weights do not depend on the form."""
+    """Within: the programs traced launch the kernel in ``form`` (one of ``FORMS``; "auto": the
+    library's choice; None: as set outside). The weights do not depend on the form."""
     if form is None:
         yield
         return
-    if form not in FORMS + ("auto",):
-        raise ValueError(f"CUDA launch form {form!r}: the built forms are {', '.join(FORMS)} (or auto)")
-    names = ("GMR_JAX_CUDA_CLUSTER", "GMR_JAX_CUDA_THREADS")
-    saved = {k: os.environ.get(k) for k in names}
-    for k, v in zip(names, form.split("x") if form != "auto" else (None, None)):
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
+    form_code(form)  # a clear error for an unknown form
+    token = _FORM.set(form)
     try:
         yield
     finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        _FORM.reset(token)
 
 
 def pad4(n: int) -> int:
@@ -433,15 +441,6 @@ def library() -> ctypes.CDLL:
     return lib
 
 
-def chosen_form(seeds: int, smem_bytes: int) -> str:
-    """The launch form (``FORMS``) the library takes for ``seeds`` seeds of a program that needs
-    ``smem_bytes`` of shared memory, as set now (``launch_form``) and on this GPU."""
-    lib = library()
-    lib.GmrSstepCudaForm.restype = ctypes.c_int
-    code = lib.GmrSstepCudaForm(ctypes.c_longlong(seeds), ctypes.c_longlong(smem_bytes))
-    return f"{code // 10000}x{code % 10000}"
-
-
 class Inputs(NamedTuple):
     """What the kernel reads, per seed (``gmr_cuda.cu``'s ``Args`` in its order)."""
 
@@ -473,9 +472,10 @@ def inputs(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx, n
 
 
 def launch(inp: Inputs, smem_bytes: int, *, cycles: bool = False):
-    """The kernel on ``inp`` (float32, on the GPU): (θ [n], stats [steps, len(STATS)]), and with
-    ``cycles`` the clock cycles of each phase of the program summed over the steps (the last
-    entry: the statistics' reduction) [phases + 1]."""
+    """The kernel on ``inp`` (float32, on the GPU) in the form that ``launch_form`` sets: (θ [n],
+    stats [steps, len(STATS)]), and with ``cycles`` also the clock cycles of each phase of the
+    program summed over the steps (the last entry: the statistics' reduction) [phases + 1] and the
+    form that ran (int32 [1], ``form_code``)."""
     if smem_bytes > SMEM_LIMIT:
         raise ValueError(f"sstep impl='cuda': the networks need {smem_bytes} bytes of shared memory, more "
                          f"than {SMEM_LIMIT}: use impl='packed'")
@@ -485,12 +485,14 @@ def launch(inp: Inputs, smem_bytes: int, *, cycles: bool = False):
     n = inp.theta0.shape[0]
     phases = int(inp.program[HEADER.index("n_phases")])
     call = jax.ffi.ffi_call(TARGET, (jax.ShapeDtypeStruct((n,), f32),) * 3
-                            + (jax.ShapeDtypeStruct((steps, len(STATS)), f32), jax.ShapeDtypeStruct((phases + 1,), f32)),
+                            + (jax.ShapeDtypeStruct((steps, len(STATS)), f32), jax.ShapeDtypeStruct((phases + 1,), f32),
+                               jax.ShapeDtypeStruct((1,), jnp.int32)),
                             vmap_method="broadcast_all")
-    theta, _, _, stats, clocks = call(inp.idx, inp.eps.astype(f32), inp.c1.astype(f32), inp.c2.astype(f32),
-                              *(a.astype(f32) for a in inp.rows), inp.theta0.astype(f32), jnp.asarray(inp.program),
-                              jnp.asarray(inp.floats, f32), steps=np.int64(steps), smem_bytes=np.int64(smem_bytes))
-    return (theta, stats, clocks) if cycles else (theta, stats)
+    theta, _, _, stats, clocks, form = call(
+        inp.idx, inp.eps.astype(f32), inp.c1.astype(f32), inp.c2.astype(f32), *(a.astype(f32) for a in inp.rows),
+        inp.theta0.astype(f32), jnp.asarray(inp.program), jnp.asarray(inp.floats, f32), steps=np.int64(steps),
+        smem_bytes=np.int64(smem_bytes), form=np.int64(form_code(_FORM.get())))
+    return (theta, stats, clocks, form) if cycles else (theta, stats)
 
 
 def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx, noise, c1, c2, *, run=None):
