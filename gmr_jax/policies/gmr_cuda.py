@@ -106,7 +106,8 @@ def form_name(code: int) -> str:
 @contextlib.contextmanager
 def launch_form(form: str | None):
     """Within: the programs traced launch the kernel in ``form`` (one of ``FORMS``; "auto": the
-    library's choice; None: as set outside). The weights do not depend on the form."""
+    library's choice; None: as set outside). The form is part of the traced program: a jitted
+    function traced before keeps the form it was traced with. The weights do not depend on it."""
     if form is None:
         yield
         return
