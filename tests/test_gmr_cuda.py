@@ -12,6 +12,7 @@ import re
 import shutil
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -531,6 +532,43 @@ def test_compact_layout_holds_every_trained_weight():
     assert np.all(padded[outside] == 0)
     assert np.count_nonzero(padded[index]) == np.count_nonzero(padded)
 
+
+
+def _primitives(jaxpr) -> set[str]:
+    """The names of every primitive in a jaxpr, its sub-jaxprs included."""
+    names = set()
+    for eqn in jaxpr.eqns:
+        names.add(eqn.primitive.name)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            names |= _primitives(sub)
+    return names
+
+
+def test_unpacking_gathers_every_weight_back_without_a_scatter():
+    """The compact θ -> padded θ -> Flax tree path of ``gmr_cuda.fit`` returns every weight and
+    bias bit for bit, under ``jax.vmap`` too, and its program holds gathers only: a scatter
+    there is rewritten by XLA's deterministic GPU options into a sort of its indices."""
+    cfg = GMRConfig()
+    pol = make_policy("gmr", cfg)
+    lay = gmr_kernel.layout(cfg, 12, 6, 20)
+    index = gmr_cuda.compact_index(gmr_cuda.compact(lay))
+    nets = [pol.init(jax.random.key(s), 12, 6, jnp.float32).net for s in range(2)]
+    zeros = jax.tree_util.tree_map(jnp.zeros_like, nets[0])
+
+    def round_trip(net):
+        compact = gmr_kernel.pack(cfg, lay, net)[index]
+        padded_index = np.full(lay.size, -1)
+        padded_index[index] = np.arange(len(index))
+        padded = gmr_kernel.take(compact, padded_index, jnp.zeros((lay.size,), jnp.float32))
+        return gmr_kernel.unpack(cfg, lay, zeros, padded)
+
+    batched = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *nets)
+    back = jax.jit(jax.vmap(round_trip))(batched)
+    for s, net in enumerate(nets):
+        for a, b in zip(jax.tree_util.tree_leaves(net), jax.tree_util.tree_leaves(back)):
+            np.testing.assert_array_equal(np.asarray(b)[s], np.asarray(a))
+    names = _primitives(jax.make_jaxpr(jax.vmap(round_trip))(batched).jaxpr)
+    assert "gather" in names and not any(n.startswith("scatter") for n in names), names
 
 def test_cuda_form_refuses_what_it_does_not_run():
     """One-line errors: float64, a non-leaky ReLU, no GPU."""

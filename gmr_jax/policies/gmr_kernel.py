@@ -166,16 +166,36 @@ def pack(cfg: GMRConfig, lay: Layout, net: dict) -> Array:
     return jnp.concatenate(parts)
 
 
+def _dense_sources(cfg: GMRConfig, lay: Layout, net: dict) -> dict:
+    """{(network, i): (kernel [fan_in, fan_out], bias [fan_out])}: the θ entry that holds each
+    entry of the Flax layer ``Dense_i`` of ``network`` (-1 where no block holds it)."""
+    out = {}
+    for name, network, i in _flax_layers(cfg, lay):
+        blk = lay.blocks[name]
+        dense = net["params"][network][f"Dense_{i}"]
+        kernel, bias = out.setdefault((network, i), (np.full(np.shape(dense["kernel"]), -1),
+                                                     np.full(np.shape(dense["bias"]), -1)))
+        r, c = np.flatnonzero(blk.rows >= 0), np.flatnonzero(blk.cols >= 0)
+        kernel[np.ix_(blk.rows[r], blk.cols[c])] = blk.offset + r[:, None] * blk.fan_out + c[None, :]
+        bias[blk.cols[c]] = blk.bias_offset + c
+    return out
+
+
+def take(source: Array, index: np.ndarray, fallback: Array) -> Array:
+    """``source[index]`` in ``fallback``'s dtype, ``fallback`` where ``index`` is -1: a gather with
+    static indices, where a scatter into ``fallback`` would, under XLA's deterministic GPU
+    options, be rewritten into a sort of its indices (many kernels to compile)."""
+    picked = source[np.maximum(index, 0)].astype(fallback.dtype)
+    return picked if np.all(index >= 0) else jnp.where(index >= 0, picked, fallback)
+
+
 def unpack(cfg: GMRConfig, lay: Layout, net: dict, theta: Array) -> dict:
     """θ -> params.net (Flax), the inverse of ``pack`` (``net`` gives the tree and shapes)."""
     out = jax.tree_util.tree_map(lambda a: a, net)
-    for name, network, i in _flax_layers(cfg, lay):
-        blk = lay.blocks[name]
+    for (network, i), (kernel, bias) in _dense_sources(cfg, lay, net).items():
         dense = out["params"][network][f"Dense_{i}"]
-        W = theta[blk.offset: blk.bias_offset].reshape(blk.fan_in, blk.fan_out)
-        r, c = np.flatnonzero(blk.rows >= 0), np.flatnonzero(blk.cols >= 0)
-        dense["kernel"] = dense["kernel"].at[np.ix_(blk.rows[r], blk.cols[c])].set(W[np.ix_(r, c)])
-        dense["bias"] = dense["bias"].at[blk.cols[c]].set(theta[blk.bias_offset + c])
+        dense["kernel"] = take(theta, kernel, dense["kernel"])
+        dense["bias"] = take(theta, bias, dense["bias"])
     return out
 
 
