@@ -85,7 +85,7 @@ def update_policy_prior(prior: PolicyPrior, key, X: Array, action_fn: Callable[[
         if N > S:
             raise ValueError(f"update_policy_prior: mode 'replace' stores all N={N} samples, "
                              f"but max_samples={S}; raise max_samples")
-        Xb = prior.X.at[:N].set(X.astype(prior.X.dtype))
+        Xb = prior.X.at[:N].set(X.astype(prior.X.dtype), unique_indices=True)
         count = jnp.asarray(N, jnp.int32)
     else:
         Xb = ring_insert(prior.X, prior.count, X)
@@ -136,7 +136,7 @@ def linearize_policy(prior: PolicyPrior, X: Array, pol_mu: Array, pol_sig: Array
     # FIX (default "ridge"): ridge on the x block at t = 0 only (toolbox: 1e-8 broadcast over the
     # block, "toolbox").
     reg0 = regularizer_matrix(cfg.t0_regularizer, cfg.t0_regularization, dX, D, dtype)
-    sig_reg = jnp.zeros((T, D, D), dtype).at[0].set(reg0)
+    sig_reg = jnp.zeros((T, D, D), dtype).at[0].set(reg0, unique_indices=True)
 
     def step(pts, reg):
         return conditional_fit(prior.gmm, pts, cfg.strength, dwts, dX, dU, reg)

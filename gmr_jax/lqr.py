@@ -428,7 +428,8 @@ def eta_search(dyn: Dynamics, cost: QuadraticCost, anchor: LinearGaussianPolicy,
         new_eta, new_lo, new_hi = bracket_update(con, eta_used, lo, hi)
         eta_next = jnp.where(converged | ~ok, eta_used, new_eta)
         return (itr + 1, eta_next, new_lo, new_hi, policy, marg, kl_t, eta_used, converged, ok,
-                eta_tr.at[itr].set(eta_used), kl_tr.at[itr].set(kl))
+                eta_tr.at[itr].set(eta_used, unique_indices=True),
+                kl_tr.at[itr].set(kl, unique_indices=True))
 
     # Placeholders with the output shapes; the loop body always runs at least once.
     zero_pol = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, dtype), anchor)
@@ -489,9 +490,10 @@ def guess_dynamics(gains: Array, acc: Array, dX: int, dU: int, dt: float) -> tup
     dtype = gains.dtype
     eye = jnp.eye(dU, dtype=dtype)
     Fd = jnp.zeros((dX, dX + dU), dtype)
-    Fd = Fd.at[:dU, :dU].set(eye).at[:dU, dU:2 * dU].set(dt * eye)
-    Fd = Fd.at[:dU, dX:].set(dt ** 2 * jnp.diag(gains))
-    Fd = Fd.at[dU:2 * dU, dU:2 * dU].set(eye).at[dU:2 * dU, dX:].set(dt * jnp.diag(gains))
+    Fd = Fd.at[:dU, :dU].set(eye, unique_indices=True).at[:dU, dU:2 * dU].set(dt * eye, unique_indices=True)
+    Fd = Fd.at[:dU, dX:].set(dt ** 2 * jnp.diag(gains), unique_indices=True)
+    Fd = Fd.at[dU:2 * dU, dU:2 * dU].set(eye, unique_indices=True)
+    Fd = Fd.at[dU:2 * dU, dX:].set(dt * jnp.diag(gains), unique_indices=True)
     fc = jnp.concatenate([acc * dt ** 2, acc * dt, jnp.zeros((dX - 2 * dU,), dtype)])
     return Fd, fc
 
@@ -534,7 +536,7 @@ def init_lqr(x0: Array, T: int, dU: int, dt: float,
     ]) / cfg.init_var
     L = jnp.diag(diag)
     l = -L @ jnp.concatenate([x0, jnp.zeros((dU,), dtype)])
-    w = jnp.ones((T,), dtype).at[T - 1].set(cfg.final_weight)
+    w = jnp.ones((T,), dtype).at[T - 1].set(cfg.final_weight, unique_indices=True)
     Cm = w[:, None, None] * L
     cv = w[:, None] * l
     policy, _ = _riccati(jnp.broadcast_to(Fd, (T,) + Fd.shape), jnp.broadcast_to(fc, (T, dX)),
@@ -568,8 +570,8 @@ def init_pd(x0: Array, T: int, dU: int, *, init_var: float = 10.0, pos_gains: fl
         raise ValueError(f"init_pd: dX={dX} must be at least 2·dQ={2 * dQ}")
     n = min(dU, dQ)
     K1 = jnp.zeros((dU, dX), dtype)
-    K1 = K1.at[:n, :n].set(jnp.eye(n, dtype=dtype))
-    K1 = K1.at[:n, dQ:dQ + n].set(vel_gains_mult * jnp.eye(n, dtype=dtype))
+    K1 = K1.at[:n, :n].set(jnp.eye(n, dtype=dtype), unique_indices=True)
+    K1 = K1.at[:n, dQ:dQ + n].set(vel_gains_mult * jnp.eye(n, dtype=dtype), unique_indices=True)
     K1 = -pos_gains * K1
     K = jnp.broadcast_to(K1, (T, dU, dX))
     k = jnp.broadcast_to(-K1 @ x0, (T, dU))

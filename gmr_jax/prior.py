@@ -32,7 +32,7 @@ def ring_insert(buf: Array, count: Array, new: Array) -> Array:
     skip = max(0, N - S)
     new = new[skip:]
     idx = (count + skip + jnp.arange(new.shape[0])) % S
-    return buf.at[idx].set(new.astype(buf.dtype))
+    return buf.at[idx].set(new.astype(buf.dtype), unique_indices=True)
 
 
 def stored_mask(count: Array, S: int) -> Array:
@@ -84,7 +84,7 @@ def regularizer_matrix(kind: str, value: float, n: int, D: int, dtype) -> Array:
         block = jnp.full((n, n), value, dtype)
     else:
         raise ValueError(f"regularizer={kind!r}: allowed values are {REGULARIZERS}")
-    return jnp.zeros((D, D), dtype).at[:n, :n].set(block)
+    return jnp.zeros((D, D), dtype).at[:n, :n].set(block, unique_indices=True)
 
 
 def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array, d1: int, d2: int,
@@ -122,7 +122,7 @@ def gauss_fit_joint_prior(pts: Array, mu0: Array, Phi: Array, m, n0, dwts: Array
         # below the rounding of the fit's own inputs; it is left out there, so that float64
         # stays bitwise the toolbox's formula.
         floor = jnp.maximum(linalg.cholesky_floor(sigma[:d1, :d1]) - jnp.diagonal(sig_reg)[:d1], 0.0)
-        sigma = sigma.at[jnp.arange(d1), jnp.arange(d1)].add(floor)
+        sigma = sigma.at[jnp.arange(d1), jnp.arange(d1)].add(floor, unique_indices=True)
     s11 = sigma[:d1, :d1]
     s12 = sigma[:d1, d1:d1 + d2]
     # Σ_aa is symmetric positive definite (prior or ridge): a Cholesky solve, not a general one.

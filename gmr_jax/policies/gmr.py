@@ -353,7 +353,7 @@ def cholesky_factor(r: Array, dU: int, init_var: float, std_range: float, offdia
     within sqrt(init_var)·[1/std_range, std_range], and r = 0 gives Ψ_Σ = init_var·I.
     """
     rows, cols = np.tril_indices(dU)
-    full = jnp.zeros(r.shape[:-1] + (dU, dU), r.dtype).at[..., rows, cols].set(r)
+    full = jnp.zeros(r.shape[:-1] + (dU, dU), r.dtype).at[..., rows, cols].set(r, unique_indices=True)
     return cholesky_from_square(full, init_var, std_range, offdiag_bound)
 
 
