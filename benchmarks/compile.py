@@ -130,6 +130,12 @@ def stage_programs(cfg: config.Config, seeds: tuple[int, ...] = ()):
     return progs
 
 
+def selection(only: str) -> set[str]:
+    """``--only``'s beginnings of program names: split at commas, except a comma followed by a
+    space, which program names hold ("train, 256 seeds")."""
+    return {s.strip() for s in re.split(r",(?! )", only) if s.strip()}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.compile", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -137,7 +143,9 @@ def main(argv=None) -> int:
     p.add_argument("--scenario", default="AB")
     p.add_argument("--backend", default="mjx", choices=("auto", "mjx", "mujoco"))
     cli.add_precision_argument(p)
-    p.add_argument("--only", default="", help="comma-separated stage names to compile (default: all)")
+    p.add_argument("--only", default="", help="comma-separated beginnings of the names of the programs to "
+                   "compile (default: all); a comma followed by a space belongs to a name, as in "
+                   "\"train, 256 seeds\"")
     p.add_argument("--set", action="append", default=[], metavar="GROUP__FIELD=VALUE",
                    help="configuration override (a Python literal)")
     p.add_argument("--profile", metavar="DIR", help="compile under JAX's profiler (traces under DIR) and "
@@ -155,7 +163,7 @@ def main(argv=None) -> int:
            "precision": args.precision, "jax": jax.__version__, "python": platform.python_version(),
            "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
     print(f"Device: {env['device']}, {args.precision}, jax {env['jax']}, {args.scenario}/{args.algorithm}", flush=True)
-    only = {s.strip() for s in args.only.split(",") if s.strip()}
+    only = selection(args.only)
     rows = {}
     for name, fn, fargs in stage_programs(cfg, args.seeds):
         if only and not any(name.startswith(o) for o in only):
