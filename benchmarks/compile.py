@@ -164,10 +164,12 @@ def main(argv=None) -> int:
            "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
     print(f"Device: {env['device']}, {args.precision}, jax {env['jax']}, {args.scenario}/{args.algorithm}", flush=True)
     only = selection(args.only)
+    programs = stage_programs(cfg, args.seeds)
+    chosen = [prog for prog in programs if not only or any(prog[0].startswith(o) for o in only)]
+    if not chosen:
+        p.error(f"--only {args.only!r} names no program; the programs: {'; '.join(name for name, *_ in programs)}")
     rows = {}
-    for name, fn, fargs in stage_programs(cfg, args.seeds):
-        if only and not any(name.startswith(o) for o in only):
-            continue
+    for name, fn, fargs in chosen:
         tdir = os.path.join(args.profile, re.sub(r"\W+", "_", name)) if args.profile else None
         rows[name] = r = profile(fn, *fargs, trace_dir=tdir)
         print(f"  {name:42s} lower {r['lower_s']:6.1f} s  compile {r['compile_s']:6.1f} s  "

@@ -207,7 +207,8 @@ def wrap_angles(d: Array, entries: Sequence[int]) -> Array:
     idx = np.asarray(entries)
     two_pi = jnp.asarray(2 * np.pi, d.dtype)
     wrapped = d[..., idx] - two_pi * jnp.floor((d[..., idx] + two_pi / 2) / two_pi)
-    return d.at[..., idx].set(wrapped, unique_indices=len(np.unique(idx)) == len(idx))
+    # unique only if no two entries name the same element (negative entries count from the end)
+    return d.at[..., idx].set(wrapped, unique_indices=len(np.unique(idx % d.shape[-1])) == len(idx))
 
 
 def state_cost(target, wp, l1, l2, alpha, ramp_w, norm: str = "l1l2",

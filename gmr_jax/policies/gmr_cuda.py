@@ -518,7 +518,9 @@ def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx, nois
     theta, stats = run(inp, smem_bytes)
     dX, dU = params.norm.scale.shape[-1], params.var.shape[-1]
     lay = gmr_kernel.layout(cfg, dX, dU, scfg.batch_size)
-    index = np.full(lay.size, -1)  # the compact θ's entry of each padded entry (-1: padding)
-    index[compact_index(compact(lay))] = np.arange(theta.shape[-1])
-    padded = gmr_kernel.take(theta, index, jnp.zeros((lay.size,), dtype))
-    return gmr_kernel.unpack(cfg, lay, params.net, padded), stats.astype(dtype)
+    held = compact_index(compact(lay))
+    if theta.shape != held.shape:
+        raise ValueError(f"gmr_cuda.fit: the kernel returned θ of shape {theta.shape}, expected {held.shape}")
+    position = np.full(lay.size, -1)  # the compact θ's entry of each padded entry (-1: padding)
+    position[held] = np.arange(len(held))
+    return gmr_kernel.unpack(cfg, lay, params.net, theta.astype(dtype), position), stats.astype(dtype)

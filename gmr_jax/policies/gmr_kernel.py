@@ -167,8 +167,9 @@ def pack(cfg: GMRConfig, lay: Layout, net: dict) -> Array:
 
 
 def _dense_sources(cfg: GMRConfig, lay: Layout, net: dict) -> dict:
-    """{(network, i): (kernel [fan_in, fan_out], bias [fan_out])}: the θ entry that holds each
-    entry of the Flax layer ``Dense_i`` of ``network`` (-1 where no block holds it)."""
+    """{(network, i): (kernel, bias)}, int arrays of the Flax layer ``Dense_i`` of ``network``'s
+    own shapes ([fan_in, fan_out] and [fan_out], unpadded): the θ entry that holds each of its
+    entries (-1 where no block holds it)."""
     out = {}
     for name, network, i in _flax_layers(cfg, lay):
         blk = lay.blocks[name]
@@ -182,20 +183,29 @@ def _dense_sources(cfg: GMRConfig, lay: Layout, net: dict) -> dict:
 
 
 def take(source: Array, index: np.ndarray, fallback: Array) -> Array:
-    """``source[index]`` in ``fallback``'s dtype, ``fallback`` where ``index`` is -1: a gather with
-    static indices, where a scatter into ``fallback`` would, under XLA's deterministic GPU
-    options, be rewritten into a sort of its indices (many kernels to compile)."""
+    """``source[index]`` (``source`` 1-D, ``index`` a static int array of ``fallback``'s shape) in
+    ``fallback``'s dtype, with ``fallback``'s entry wherever ``index`` is negative: a gather,
+    where a scatter into ``fallback`` would, under XLA's deterministic GPU options, be rewritten
+    into a sort of its indices (many kernels to compile)."""
     picked = source[np.maximum(index, 0)].astype(fallback.dtype)
     return picked if np.all(index >= 0) else jnp.where(index >= 0, picked, fallback)
 
 
-def unpack(cfg: GMRConfig, lay: Layout, net: dict, theta: Array) -> dict:
-    """θ -> params.net (Flax), the inverse of ``pack`` (``net`` gives the tree and shapes)."""
+def unpack(cfg: GMRConfig, lay: Layout, net: dict, theta: Array, position: np.ndarray | None = None) -> dict:
+    """θ -> params.net (Flax), the inverse of ``pack`` (``net`` gives the tree and shapes, and the
+    values of entries that no block holds). With ``position`` [lay.size], ``theta`` is another
+    vector that holds θ's entry p at ``position[p]`` (-1: not held; every entry of a layer must
+    be held), e.g. ``gmr_cuda``'s compact θ: one gather per leaf straight from it."""
     out = jax.tree_util.tree_map(lambda a: a, net)
-    for (network, i), (kernel, bias) in _dense_sources(cfg, lay, net).items():
+    for (network, i), in_theta in _dense_sources(cfg, lay, net).items():
+        sources = in_theta
+        if position is not None:
+            sources = tuple(np.where(s >= 0, position[np.maximum(s, 0)], -1) for s in in_theta)
+            if any(np.any((s < 0) & (t >= 0)) for s, t in zip(sources, in_theta)):
+                raise ValueError(f"gmr_kernel.unpack: `position` does not hold every entry of {network}'s Dense_{i}")
         dense = out["params"][network][f"Dense_{i}"]
-        dense["kernel"] = take(theta, kernel, dense["kernel"])
-        dense["bias"] = take(theta, bias, dense["bias"])
+        dense["kernel"] = take(theta, sources[0], dense["kernel"])
+        dense["bias"] = take(theta, sources[1], dense["bias"])
     return out
 
 
