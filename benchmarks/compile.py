@@ -136,6 +136,16 @@ def selection(only: str) -> set[str]:
     return {s.strip() for s in re.split(r",(?! )", only) if s.strip()}
 
 
+def chosen(programs: list, only: str) -> list:
+    """The ``(name, fn, args)`` of ``programs`` whose names begin with one of ``--only``'s (all
+    for an empty ``only``). Raises ValueError, naming the programs, where none does."""
+    names = selection(only)
+    picked = [prog for prog in programs if not names or any(prog[0].startswith(o) for o in names)]
+    if not picked:
+        raise ValueError(f"--only {only!r} names no program; the programs: {'; '.join(n for n, *_ in programs)}")
+    return picked
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.compile", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -163,13 +173,12 @@ def main(argv=None) -> int:
            "precision": args.precision, "jax": jax.__version__, "python": platform.python_version(),
            "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
     print(f"Device: {env['device']}, {args.precision}, jax {env['jax']}, {args.scenario}/{args.algorithm}", flush=True)
-    only = selection(args.only)
-    programs = stage_programs(cfg, args.seeds)
-    chosen = [prog for prog in programs if not only or any(prog[0].startswith(o) for o in only)]
-    if not chosen:
-        p.error(f"--only {args.only!r} names no program; the programs: {'; '.join(name for name, *_ in programs)}")
+    try:
+        programs = chosen(stage_programs(cfg, args.seeds), args.only)
+    except ValueError as e:
+        p.error(str(e))
     rows = {}
-    for name, fn, fargs in chosen:
+    for name, fn, fargs in programs:
         tdir = os.path.join(args.profile, re.sub(r"\W+", "_", name)) if args.profile else None
         rows[name] = r = profile(fn, *fargs, trace_dir=tdir)
         print(f"  {name:42s} lower {r['lower_s']:6.1f} s  compile {r['compile_s']:6.1f} s  "

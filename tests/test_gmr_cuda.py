@@ -561,6 +561,20 @@ def test_cuda_sstep_unpacks_the_kernels_weights_by_gathers(monkeypatch):
     assert jaxprs.scatters_that_may_repeat_an_index(program) == []
 
 
+def test_unpack_refuses_positions_that_miss_a_weight():
+    """``gmr_kernel.unpack`` with ``position``: one line naming the layer whose entry the other
+    vector does not hold, not weights silently left at their old values."""
+    cfg = GMRConfig()
+    params = make_policy("gmr", cfg).init(jax.random.key(0), 12, 6, jnp.float32)
+    lay = gmr_kernel.layout(cfg, 12, 6, 20)
+    held = gmr_cuda.compact_index(gmr_cuda.compact(lay))
+    position = np.full(lay.size, -1)
+    position[held] = np.arange(len(held))
+    position[held[0]] = -1  # the first layer's first weight
+    with pytest.raises(ValueError, match="does not hold every entry of encoder's Dense_0"):
+        gmr_kernel.unpack(cfg, lay, params.net, jnp.zeros(len(held)), position)
+
+
 def test_cuda_form_refuses_what_it_does_not_run():
     """One-line errors: float64, a non-leaky ReLU, no GPU."""
     with pytest.raises(ValueError, match="float32 only"):
