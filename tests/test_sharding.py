@@ -5,6 +5,7 @@ count. The C MuJoCo backend's host callbacks run per device, and a program of th
 CPU devices finishes."""
 
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -20,6 +21,14 @@ from gmr_jax import checkpoint, mdgps, runner, sharding
 from test_mdgps import _run_from, small
 
 SEEDS = [0, 1, 2, 3]
+
+
+def four_cpu_devices_env(*flags: str) -> dict:
+    """The environment of a test's child process: JAX on four CPU devices, with the suite's code
+    generator (tests/conftest.py: the child then compiles as fast as this process) and ``flags``."""
+    suite = re.sub(r"--xla_force_host_platform_device_count=\S*", "", os.environ.get("XLA_FLAGS", ""))
+    return dict(os.environ, JAX_PLATFORMS="cpu",
+                XLA_FLAGS=" ".join([suite.strip(), "--xla_force_host_platform_device_count=4", *flags]).strip())
 
 
 @pytest.fixture(scope="module")
@@ -136,11 +145,10 @@ def test_unpad_from_two_threads_at_once_finishes():
     the mesh with an all-gather; the two threads' programs reached the devices in different
     orders, every device waited in XLA's rendezvous for a different all-gather, and XLA ended the
     process (this test: 1 of 3 runs of that code on a 2-core host; benchmarks/RESULTS.md,
-    thirty-seventh session). In a process of its own, so that such an end fails this test and
-    not the suite, with XLA's rendezvous timeout at 10 s instead of 40 s."""
-    env = dict(os.environ, JAX_PLATFORMS="cpu",
-               XLA_FLAGS="--xla_force_host_platform_device_count=4 "
-                         "--xla_cpu_collective_call_terminate_timeout_seconds=10")
+    thirty-seventh session; 0 of 8 on a 2-core AMD EPYC host in the forty-ninth, 4 with XLA's
+    default code generator and 4 with the suite's). In a process of its own, so that such an end
+    fails this test and not the suite, with XLA's rendezvous timeout at 10 s instead of 40 s."""
+    env = four_cpu_devices_env("--xla_cpu_collective_call_terminate_timeout_seconds=10")
     try:
         done = subprocess.run([sys.executable, "-c", _UNPAD_FROM_TWO_THREADS], env=env, capture_output=True,
                               text=True, timeout=600)
@@ -200,7 +208,7 @@ def test_host_rollouts_over_four_cpu_devices_finish_with_the_single_device_bits(
     on its own, so the batch a callback receives does not change it). Through
     ``jax.pure_callback`` this program never finished (``sim._host_callback``): run in a process
     of its own, so that a hang fails this test instead of the suite."""
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    env = four_cpu_devices_env()
     try:
         done = subprocess.run([sys.executable, "-c", _HOST_ROLLOUTS_OVER_FOUR_CPU_DEVICES], env=env,
                               capture_output=True, text=True, timeout=600)
