@@ -6,7 +6,8 @@ split over ``--devices`` local devices (``gmr_jax.sharding``; default all), runs
 configured training (default: MDGPS on scenario AB, i.e. 2 conditions, 5 samples,
 T = 80, 10 iterations), compiled with the XLA options the runner uses for that many seeds per
 device (``sharding.compiler_options``; ``--compiler-options none`` for XLA's defaults). Compile
-time (lower + compile, and the lowering alone: ``lower_s``) and run time (median over repeats, after compilation) are reported separately, with the final-state MSE reached, so that speed is never
+time (lower + compile, and the lowering alone: ``lower_s``) and run time (median over repeats,
+after compilation) are reported separately, with the final-state MSE reached, so that speed is never
 quoted for a run that did not learn; ``results_sha256`` (of the metrics history and the final
 state) tells whether two runs, e.g. of two versions of the code, computed the same bits. Example::
 

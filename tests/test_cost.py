@@ -182,7 +182,6 @@ def test_wrap_angles_is_the_shortest_way_round():
     np.testing.assert_array_equal(cost.wrap_angles(jnp.asarray(x), ()), x)
 
 
-
 @pytest.mark.parametrize("entries, unique", [((0, 2), True), ((-1, 2), False), ((0, 0), False)])
 def test_wrap_angles_marks_its_scatter_unique_only_when_no_two_entries_name_one_element(entries, unique):
     """A scatter marked unique whose indices repeat is undefined on a GPU; -1 and 2 name the same
@@ -190,6 +189,7 @@ def test_wrap_angles_marks_its_scatter_unique_only_when_no_two_entries_name_one_
     jaxpr = jax.make_jaxpr(lambda d: cost.wrap_angles(d, entries))(jnp.zeros((5, 3)))
     flags = [e.params["unique_indices"] for e in jaxpr.jaxpr.eqns if e.primitive.name == "scatter"]
     assert flags == [unique]
+
 
 @pytest.mark.parametrize("norm", ["l1l2", "logl2"])
 def test_wrapped_state_cost_is_the_raw_cost_of_the_wrapped_state(norm):

@@ -533,7 +533,6 @@ def test_compact_layout_holds_every_trained_weight():
     assert np.count_nonzero(padded[index]) == np.count_nonzero(padded)
 
 
-
 def test_cuda_sstep_unpacks_the_kernels_weights_by_gathers(monkeypatch):
     """``sstep(impl="cuda")`` over two seeds (``jax.vmap``) with a kernel that returns its starting
     θ: the returned networks are the starting ones bit for bit (compact θ -> Flax tree), and the
@@ -567,9 +566,10 @@ def test_unpack_refuses_positions_that_miss_a_weight():
     cfg = GMRConfig()
     params = make_policy("gmr", cfg).init(jax.random.key(0), 12, 6, jnp.float32)
     lay = gmr_kernel.layout(cfg, 12, 6, 20)
+    position = gmr_cuda.compact_position(lay)
     held = gmr_cuda.compact_index(gmr_cuda.compact(lay))
-    position = np.full(lay.size, -1)
-    position[held] = np.arange(len(held))
+    np.testing.assert_array_equal(position[held], np.arange(len(held)))  # the inverse of compact_index
+    assert np.count_nonzero(position >= 0) == len(held)
     position[held[0]] = -1  # the first layer's first weight
     with pytest.raises(ValueError, match="does not hold every entry of encoder's Dense_0"):
         gmr_kernel.unpack(cfg, lay, params.net, jnp.zeros(len(held)), position)

@@ -161,6 +161,15 @@ def compact_index(layers: list[CompactLayer]) -> np.ndarray:
     return np.concatenate([L.index for L in layers])
 
 
+def compact_position(lay: gmr_kernel.Layout) -> np.ndarray:
+    """[lay.size] the compact θ's entry of every padded entry (-1: padding, not in the compact θ),
+    the inverse of ``compact_index``: ``gmr_kernel.unpack``'s ``position``."""
+    held = compact_index(compact(lay))
+    position = np.full(lay.size, -1)
+    position[held] = np.arange(len(held))
+    return position
+
+
 class Program(NamedTuple):
     """The kernel's program (int32 [P]) and the dynamic shared memory it needs (bytes)."""
 
@@ -518,9 +527,8 @@ def fit(cfg: GMRConfig, scfg: SStepConfig, params: PolicyParams, rows, idx, nois
     theta, stats = run(inp, smem_bytes)
     dX, dU = params.norm.scale.shape[-1], params.var.shape[-1]
     lay = gmr_kernel.layout(cfg, dX, dU, scfg.batch_size)
-    held = compact_index(compact(lay))
-    if theta.shape != held.shape:
-        raise ValueError(f"gmr_cuda.fit: the kernel returned θ of shape {theta.shape}, expected {held.shape}")
-    position = np.full(lay.size, -1)  # the compact θ's entry of each padded entry (-1: padding)
-    position[held] = np.arange(len(held))
+    position = compact_position(lay)
+    held = int(np.count_nonzero(position >= 0))
+    if theta.shape != (held,):
+        raise ValueError(f"gmr_cuda.fit: the kernel returned θ of shape {theta.shape}, expected {(held,)}")
     return gmr_kernel.unpack(cfg, lay, params.net, theta.astype(dtype), position), stats.astype(dtype)
