@@ -63,14 +63,10 @@ def _release_compiled_programs():
     """Drop JAX's compiled programs after each test module. The suite compiles hundreds of
     programs (MJX rollouts among them); holding all of them for the whole session, the full suite
     aborted inside XLA while compiling at about 85 % (twice, at the same test, which passes alone
-    and after the modules before it in smaller groups). JAX's tracing caches stay
-    (``jax_caches.release_compiled_programs``): after ``jax.clear_caches()`` every module traced
-    MJX and the GPS stages cold again."""
+    and after the modules before it in smaller groups)."""
     yield
     import gc
 
-    from jax_caches import release_compiled_programs
-
-    release_compiled_programs()
+    jax.clear_caches()
     gc.collect()
 
