@@ -41,7 +41,7 @@ import jax.numpy as jnp
 
 from gmr_jax import cost as cost_lib
 from gmr_jax import dynamics as dyn_lib
-from gmr_jax import evaluate, linearize, lqr, policies, step_size, tasks
+from gmr_jax import evaluate, linearize, lqr, policies, sharding, step_size, tasks
 from gmr_jax import noise as noise_lib
 from gmr_jax import sim as sim_lib
 from gmr_jax import sstep as sstep_lib
@@ -651,7 +651,8 @@ def train(cfg: Config, key: Array):
             new_state, metrics = jax.lax.cond(jnp.logical_not(last), trained, skipped)
         return new_state, (metrics, curve)
 
-    final, (metrics, curve) = jax.lax.scan(body, init(cfg, k_init), (keys, steps == 0, steps == K))
+    final, (metrics, curve) = sharding.seed_scan(body, init(cfg, k_init), (keys, steps == 0, steps == K),
+                                                 (True, False, False))
     history = jax.tree_util.tree_map(lambda a: a[:K], metrics)
     history.update(jax.tree_util.tree_map(lambda a: a[1:], curve))
     return final, history

@@ -285,3 +285,143 @@ def train(cfg, keys: jax.Array, mesh: Mesh | None = None):
     num = keys.shape[0]
     program = seed_program(mdgps.train, mesh, (True,))
     return unpad(program(cfg, place(pad(keys, num, mesh), mesh)), num)
+
+
+def _scan_counts(params: dict) -> tuple[int, int]:
+    """(constants, carries) of a ``scan`` equation's inputs: JAX up to 0.10 names the counts,
+    later versions give the inputs' grouping (``ft_in``: constants, carries, xs)."""
+    if "num_consts" in params:
+        return params["num_consts"], params["num_carry"]
+    consts, carry, _ = params["ft_in"].unpack()
+    return len(list(consts)), len(list(carry))
+
+
+def _depends(jaxpr, varying: list[bool]) -> list[bool]:
+    """Which outputs of ``jaxpr`` (a Jaxpr or ClosedJaxpr) depend on the inputs flagged
+    ``varying``, as ``jax.vmap`` batches them: through calls (jit, custom derivatives, remat)
+    into their bodies, through ``scan`` and ``while`` to their carries' fixpoint, through
+    ``cond`` per branch unless its index varies; every other operation's outputs vary where one
+    of its inputs does."""
+    from jax.extend import core as jex
+
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    var: set = {v for v, b in zip(jaxpr.invars, varying) if b}
+
+    def of(atoms):
+        return [not isinstance(a, jex.Literal) and a in var for a in atoms]
+
+    for eqn in jaxpr.eqns:
+        ins, name, p = of(eqn.invars), eqn.primitive.name, eqn.params
+        if not any(ins):
+            continue
+        if name == "scan":
+            c, n = _scan_counts(p)
+            carry = ins[c:c + n]
+            while True:
+                out = _depends(p["jaxpr"], ins[:c] + carry + ins[c + n:])
+                grown = [a or b for a, b in zip(carry, out[:n])]
+                if grown == carry:
+                    break
+                carry = grown
+            outs = carry + out[n:]
+        elif name == "while":
+            cc, bc = p["cond_nconsts"], p["body_nconsts"]
+            carry = ins[cc + bc:]
+            while True:
+                if any(_depends(p["cond_jaxpr"], ins[:cc] + carry)):
+                    carry = [True] * len(carry)
+                    break
+                out = _depends(p["body_jaxpr"], ins[cc:cc + bc] + carry)
+                grown = [a or b for a, b in zip(carry, out)]
+                if grown == carry:
+                    break
+                carry = grown
+            outs = carry
+        elif name == "cond":
+            if ins[0]:
+                outs = [True] * len(eqn.outvars)
+            else:
+                per = [_depends(b, ins[1:]) for b in p["branches"]]
+                outs = [any(col) for col in zip(*per)]
+        else:
+            bodies = [v for v in p.values() if isinstance(v, (jex.ClosedJaxpr, jex.Jaxpr))
+                      and len(getattr(v, "jaxpr", v).invars) == len(eqn.invars)
+                      and len(getattr(v, "jaxpr", v).outvars) == len(eqn.outvars)]
+            outs = _depends(bodies[0], ins) if bodies else [True] * len(eqn.outvars)
+        var.update(v for v, b in zip(eqn.outvars, outs) if b)
+    return of(jaxpr.outvars)
+
+
+def varying_like(tree, anchor):
+    """``tree`` unchanged, each leaf made to vary wherever ``anchor`` does under ``jax.vmap``: a
+    select of the leaf or the leaf on a predicate read from ``anchor``, which XLA simplifies away
+    (under the vmap, to the leaf broadcast over the batch, as the vmap's own batching of a loop
+    carry is)."""
+    if jnp.issubdtype(anchor.dtype, jax.dtypes.prng_key):
+        anchor = jax.random.key_data(anchor)
+    first = jnp.ravel(anchor)[0]
+    pred = first == first
+
+    def vary(a):
+        return jax.lax.select(jnp.broadcast_to(pred, jnp.shape(a)), a, a)
+    return jax.tree_util.tree_map(vary, tree)
+
+
+def scan_varying(body: Callable, init, xs, varying, anchor, length: int | None = None):
+    """``jax.lax.scan(body, init, xs, length)`` whose carries start out varying under ``jax.vmap``
+    wherever they come to vary, so that the vmap batches ``body`` once.
+
+    A loop carry that starts the same for every member of a vmapped batch (an initial state of
+    zeros, a template) but comes out of the body member-dependent makes the vmap batch the whole
+    body once more, with that carry batched (``jax.lax.scan``'s batching fixpoint); for a large
+    body that is seconds of tracing (benchmarks/RESULTS.md, fifty-first session). Here the scan
+    is traced once without the vmap (``jax.make_jaxpr``), the carries that depend on the
+    ``varying`` inputs are read from that trace (:func:`_depends`, the vmap's own rule), those
+    leaves of ``init`` are made to vary with ``anchor`` (:func:`varying_like`), and the traced
+    scan is evaluated on them: the same program, its body batched in one pass.
+
+    Args:
+      body, init, xs, length: as ``jax.lax.scan``'s.
+      varying: ``(init flags, xs flags)``, pytrees of bools with the structures of ``init`` and
+        ``xs``: the inputs that differ between the batch's members.
+      anchor: an array that varies under every vmap where one of the ``varying`` inputs does.
+    """
+    from jax.extend import core as jex
+
+    def aval(a):
+        t = jax.typeof(a)
+        return jax.ShapeDtypeStruct(t.shape, t.dtype, weak_type=t.weak_type)
+
+    init_leaves, x_leaves = jax.tree_util.tree_leaves(init), jax.tree_util.tree_leaves(xs)
+    init_flags, x_flags = (jax.tree_util.tree_leaves(v) for v in varying)
+    if len(init_flags) != len(init_leaves) or len(x_flags) != len(x_leaves):
+        raise ValueError("scan_varying: varying needs one bool per leaf of init and of xs")
+    closed, out_shape = jax.make_jaxpr(lambda c, x: jax.lax.scan(body, c, x, length=length), return_shape=True)(
+        jax.tree_util.tree_map(aval, init), jax.tree_util.tree_map(aval, xs))
+    # the scan's outputs are (final carry, ys): its carries' fixpoint is the final carry's flags
+    try:
+        carry = _depends(closed, list(init_flags) + list(x_flags))[:len(init_leaves)]
+    except (KeyError, AttributeError, TypeError, ValueError):
+        # a JAX whose loop equations this rule does not know: the scan as traced, batched as
+        # the vmap does by itself
+        carry = [False] * len(init_leaves)
+    changed = varying_like([a for a, v in zip(init_leaves, carry) if v], anchor)[::-1] if any(carry) else []
+    forced = [changed.pop() if v else a for a, v in zip(init_leaves, carry)]
+    out = jex.jaxpr_as_fun(closed)(*forced, *x_leaves)
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), out)
+
+
+def seed_scan(body: Callable, init, xs, varying_xs):
+    """``jax.lax.scan(body, init, xs)`` for a function that ``over_seed_axis`` maps over seeds:
+    under a block of several seeds (``seed_block``), :func:`scan_varying` with the ``xs``
+    leaves flagged in ``varying_xs`` (a pytree of bools, at least one True, e.g. the
+    per-iteration keys) as the inputs that differ between seeds, so that the seeds' vmap
+    batches the body once; elsewhere ``jax.lax.scan`` itself."""
+    if (block_seeds() or 1) == 1:
+        return jax.lax.scan(body, init, xs)
+    x_leaves, flags = jax.tree_util.tree_leaves(xs), jax.tree_util.tree_leaves(varying_xs)
+    if len(flags) != len(x_leaves) or not any(flags):
+        raise ValueError("seed_scan: varying_xs needs one bool per leaf of xs, at least one True")
+    anchor = next(leaf for leaf, f in zip(x_leaves, flags) if f)[0]
+    no = jax.tree_util.tree_map(lambda _: False, init)
+    return scan_varying(body, init, xs, (no, varying_xs), anchor)

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from gmr_jax import types
+from gmr_jax import sharding, types
 from gmr_jax.config import SimConfig
 
 Array = jax.Array
@@ -336,7 +336,12 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
     # A fresh Data from the template each control step: the state is exactly (q, q̇), and the
     # model has warmstart disabled, so nothing else carries over between control steps.
     d = d0.replace(qpos=x[: s.nq].astype(fdt), qvel=x[s.nq:].astype(fdt), ctrl=u.astype(fdt))
-    d, _ = jax.lax.scan(lambda dd, _: (mjx.step(mx, dd), None), d, None, length=s.config.substeps)
+    # The template's other fields come to depend on (q, q̇, u) in the first physics step: made to
+    # vary with them from the start, so that a vmap batches the step once (sharding.scan_varying).
+    varying = (jax.tree_util.tree_map(lambda _: False, d).replace(qpos=True, qvel=True, ctrl=True), None)
+    anchor = jnp.stack([x[0], u[0].astype(x.dtype)])
+    d, _ = sharding.scan_varying(lambda dd, _: (mjx.step(mx, dd), None), d, None, varying, anchor,
+                                 length=s.config.substeps)
     return jnp.concatenate([d.qpos, d.qvel]).astype(x.dtype)
 
 
@@ -588,6 +593,9 @@ def rollout_with_final(s: Sim, policy: Policy, x0: Array, eps: Array, with_ee: b
 
         def act(t, x, e, p):
             return linear_gaussian_action(p, None, x, e)
+
+        # the action reads the noise, so the state varies wherever the noise does under vmap
+        x0 = sharding.varying_like(x0, eps)
     elif callable(policy):
         pol_xs = None
 
@@ -638,7 +646,9 @@ def rollout_per_row(s: Sim, traj: types.LinearGaussianPolicy, fns: tuple[PolicyF
                 u = jnp.where(w == i, fn(t, xx, et), u)
             return u
 
-        return rollout(s, act, x, e)
+        # every row's action reads its noise (the local controller's), so the state varies
+        # wherever the noise does under vmap
+        return rollout(s, act, sharding.varying_like(x, e), e)
 
     return jax.vmap(one)(traj, x0, eps, which)
 

@@ -377,3 +377,77 @@ def test_over_seed_axis_traces_under_the_choices_of_its_seed_block():
     two = sharding.over_seed_axis(lambda x, y: x + y, (True, True))
     with pytest.raises(ValueError, match=r"one leading seed axis of one size, got sizes \[2, 3\]"):
         two(jnp.zeros((2, 1)), jnp.zeros((3, 1)))
+
+
+def _loops(k, z, c, xs):
+    """Loops whose carries start unbatched under a vmap over ``k``: a scan with a pass-through
+    carry, a carry reached only through another carry, and a jitted call; a while loop on an
+    unbatched predicate; a cond on an unbatched index."""
+    def body(carry, x):
+        a, b, n = carry
+        return (a + x * k, b + a, n + 1), a * 2
+
+    (a, b, n), ys = jax.lax.scan(body, (z, z, 0), xs)
+    w, acc = jax.lax.while_loop(lambda s: s[0] < 3, lambda s: (s[0] + 1, s[1] + jax.jit(jnp.sin)(a)), (0, z))
+    picked = jax.lax.cond(c > 0, lambda v: v * k, lambda v: v, z)
+    return a, b, n, ys, w, acc, picked, z * 2
+
+
+def test_depends_agrees_with_the_batching_of_vmap():
+    """sharding._depends' flags for every output equal whether ``jax.vmap`` batches it, with
+    each input in turn the batched one (out_axes=None raises exactly for a batched output)."""
+    args = (jnp.ones(3), jnp.zeros(3), jnp.int32(1), jnp.ones((4, 3)))
+    closed = jax.make_jaxpr(_loops)(*args)
+    n_out = len(closed.jaxpr.outvars)
+    for i in range(len(args)):
+        flags = [j == i for j in range(len(args))]
+        got = sharding._depends(closed, flags)
+        in_axes = tuple(0 if f else None for f in flags)
+        batched_args = tuple(jnp.stack([a, a]) if f else a for a, f in zip(args, flags))
+        for o in range(n_out):
+            def one(*a, o=o):
+                return jax.tree_util.tree_leaves(_loops(*a))[o]
+            try:
+                jax.eval_shape(jax.vmap(one, in_axes=in_axes, out_axes=None), *batched_args)
+                want = False
+            except ValueError:
+                want = True
+            assert got[o] == want, (i, o)
+
+
+def test_scan_varying_equals_the_scan_and_batches_its_body_once(monkeypatch):
+    """Under vmap, scan_varying gives the scan's results bit for bit, and the vmap batches the
+    scan's body once (jax.lax.scan alone batches it three times: its carries start unbatched,
+    and one of them depends on the other)."""
+    from jax._src.interpreters import batching
+
+    def body(carry, x):
+        a, b, n = carry
+        return (jnp.tanh(a) + x, b + a, n + 1), a
+
+    def plain(xs):
+        return jax.lax.scan(body, (jnp.zeros(3), jnp.zeros(3), 0), xs)
+
+    def varying(xs):
+        init = (jnp.zeros(3), jnp.zeros(3), 0)
+        return sharding.scan_varying(body, init, xs, ((False, False, False), True), xs)
+
+    passes = []
+    original = batching.batch_jaxpr
+
+    def counting(closed_jaxpr, axis_data, in_batched, instantiate):
+        if len(closed_jaxpr.jaxpr.eqns) == 4:  # the body: tanh, two adds, one integer add
+            passes.append(tuple(in_batched))
+        return original(closed_jaxpr, axis_data, in_batched, instantiate)
+
+    monkeypatch.setattr(batching, "batch_jaxpr", counting)
+    xs = jax.random.normal(jax.random.PRNGKey(0), (5, 4, 3))
+    want = jax.vmap(plain)(xs)
+    assert len(passes) == 3  # b is reached through a: two passes more
+    passes.clear()
+    got = jax.vmap(varying)(xs)
+    assert len(passes) == 1
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    # the integer counter stays unbatched, as the vmap of the scan keeps it
+    assert np.shape(got[0][2]) == np.shape(want[0][2])
