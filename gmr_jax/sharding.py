@@ -298,10 +298,12 @@ def _scan_counts(params: dict) -> tuple[int, int]:
 
 def _depends(jaxpr, varying: list[bool]) -> list[bool]:
     """Which outputs of ``jaxpr`` (a Jaxpr or ClosedJaxpr) depend on the inputs flagged
-    ``varying``, as ``jax.vmap`` batches them: through calls (jit, custom derivatives, remat)
-    into their bodies, through ``scan`` and ``while`` to their carries' fixpoint, through
-    ``cond`` per branch unless its index varies; every other operation's outputs vary where one
-    of its inputs does."""
+    ``varying``, following ``jax.vmap``'s batching: through calls (jit, custom derivatives,
+    remat) into their bodies, through ``scan`` and ``while`` to their carries' fixpoint, through
+    ``cond`` per branch unless its index varies, through ``optimization_barrier`` operand by
+    operand; every other operation's outputs vary where one of its inputs does. Constants (values
+    a body closes over) count as not varying. ``custom_linear_solve``, whose sub-programs no rule
+    here reads, raises KeyError (``scan_varying`` then leaves the batching to the vmap)."""
     from jax.extend import core as jex
 
     jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
@@ -337,6 +339,8 @@ def _depends(jaxpr, varying: list[bool]) -> list[bool]:
                     break
                 carry = grown
             outs = carry
+        elif name == "optimization_barrier":
+            outs = ins
         elif name == "cond":
             if ins[0]:
                 outs = [True] * len(eqn.outvars)
@@ -347,7 +351,12 @@ def _depends(jaxpr, varying: list[bool]) -> list[bool]:
             bodies = [v for v in p.values() if isinstance(v, (jex.ClosedJaxpr, jex.Jaxpr))
                       and len(getattr(v, "jaxpr", v).invars) == len(eqn.invars)
                       and len(getattr(v, "jaxpr", v).outvars) == len(eqn.outvars)]
-            outs = _depends(bodies[0], ins) if bodies else [True] * len(eqn.outvars)
+            if bodies:
+                outs = _depends(bodies[0], ins)
+            elif name == "custom_linear_solve":
+                raise KeyError(f"no rule for the sub-programs of {name!r}")
+            else:  # including combiners (a scatter's, a reduction's)
+                outs = [True] * len(eqn.outvars)
         var.update(v for v, b in zip(eqn.outvars, outs) if b)
     return of(jaxpr.outvars)
 
@@ -356,7 +365,10 @@ def varying_like(tree, anchor):
     """``tree`` unchanged, each leaf made to vary wherever ``anchor`` does under ``jax.vmap``: a
     select of the leaf or the leaf on a predicate read from ``anchor``, which XLA simplifies away
     (under the vmap, to the leaf broadcast over the batch, as the vmap's own batching of a loop
-    carry is)."""
+    carry is). Forward values are unchanged; a reverse-mode gradient through it turns a -0.0
+    cotangent into +0.0. An empty ``anchor`` leaves ``tree`` as it is."""
+    if jnp.size(anchor) == 0:
+        return tree
     if jnp.issubdtype(anchor.dtype, jax.dtypes.prng_key):
         anchor = jax.random.key_data(anchor)
     first = jnp.ravel(anchor)[0]
@@ -384,7 +396,9 @@ def scan_varying(body: Callable, init, xs, varying, anchor, length: int | None =
       body, init, xs, length: as ``jax.lax.scan``'s.
       varying: ``(init flags, xs flags)``, pytrees of bools with the structures of ``init`` and
         ``xs``: the inputs that differ between the batch's members.
-      anchor: an array that varies under every vmap where one of the ``varying`` inputs does.
+      anchor: an array that varies under exactly the vmaps where one of the ``varying`` inputs
+        does (elsewhere a forced carry is batched where the vmap would not batch it: the same
+        values, another program). Values that ``body`` closes over are not seen.
     """
     from jax.extend import core as jex
 
@@ -416,7 +430,8 @@ def seed_scan(body: Callable, init, xs, varying_xs):
     under a block of several seeds (``seed_block``), :func:`scan_varying` with the ``xs``
     leaves flagged in ``varying_xs`` (a pytree of bools, at least one True, e.g. the
     per-iteration keys) as the inputs that differ between seeds, so that the seeds' vmap
-    batches the body once; elsewhere ``jax.lax.scan`` itself."""
+    batches the body once for the carries that come to depend on them; elsewhere
+    ``jax.lax.scan`` itself."""
     if (block_seeds() or 1) == 1:
         return jax.lax.scan(body, init, xs)
     x_leaves, flags = jax.tree_util.tree_leaves(xs), jax.tree_util.tree_leaves(varying_xs)

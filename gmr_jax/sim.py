@@ -338,6 +338,8 @@ def _mjx_step(s: Sim, x: Array, u: Array) -> Array:
     d = d0.replace(qpos=x[: s.nq].astype(fdt), qvel=x[s.nq:].astype(fdt), ctrl=u.astype(fdt))
     # The template's other fields come to depend on (q, q̇, u) in the first physics step: made to
     # vary with them from the start, so that a vmap batches the step once (sharding.scan_varying).
+    # One anchor for x and u: in a rollout the action reads the state, so they vary together
+    # (where only one varied, the vmap would keep the other's pass-through fields unbatched).
     varying = (jax.tree_util.tree_map(lambda _: False, d).replace(qpos=True, qvel=True, ctrl=True), None)
     anchor = jnp.stack([x[0], u[0].astype(x.dtype)])
     d, _ = sharding.scan_varying(lambda dd, _: (mjx.step(mx, dd), None), d, None, varying, anchor,

@@ -390,7 +390,8 @@ def _loops(k, z, c, xs):
     (a, b, n), ys = jax.lax.scan(body, (z, z, 0), xs)
     w, acc = jax.lax.while_loop(lambda s: s[0] < 3, lambda s: (s[0] + 1, s[1] + jax.jit(jnp.sin)(a)), (0, z))
     picked = jax.lax.cond(c > 0, lambda v: v * k, lambda v: v, z)
-    return a, b, n, ys, w, acc, picked, z * 2
+    kept, barred = jax.lax.optimization_barrier((z, a))
+    return a, b, n, ys, w, acc, picked, z * 2, kept, barred
 
 
 def test_depends_agrees_with_the_batching_of_vmap():
