@@ -296,6 +296,16 @@ def _scan_counts(params: dict) -> tuple[int, int]:
     return len(list(consts)), len(list(carry))
 
 
+def _carry_fixpoint(carry: list[bool], out_of: Callable) -> list[bool]:
+    """The loop carries' flags grown by ``out_of`` (carry flags -> the body's carry-out flags)
+    until they no longer change: the carries that vary after any number of iterations."""
+    while True:
+        grown = [a or b for a, b in zip(carry, out_of(carry))]
+        if grown == carry:
+            return carry
+        carry = grown
+
+
 def _depends(jaxpr, varying: list[bool]) -> list[bool]:
     """Which outputs of ``jaxpr`` (a Jaxpr or ClosedJaxpr) depend on the inputs flagged
     ``varying``, following ``jax.vmap``'s batching: through calls (jit, custom derivatives,
@@ -318,27 +328,16 @@ def _depends(jaxpr, varying: list[bool]) -> list[bool]:
             continue
         if name == "scan":
             c, n = _scan_counts(p)
-            carry = ins[c:c + n]
-            while True:
-                out = _depends(p["jaxpr"], ins[:c] + carry + ins[c + n:])
-                grown = [a or b for a, b in zip(carry, out[:n])]
-                if grown == carry:
-                    break
-                carry = grown
-            outs = carry + out[n:]
+
+            def body_out(carry):
+                return _depends(p["jaxpr"], ins[:c] + carry + ins[c + n:])
+            carry = _carry_fixpoint(ins[c:c + n], lambda carry: body_out(carry)[:n])
+            outs = carry + body_out(carry)[n:]
         elif name == "while":
             cc, bc = p["cond_nconsts"], p["body_nconsts"]
-            carry = ins[cc + bc:]
-            while True:
-                if any(_depends(p["cond_jaxpr"], ins[:cc] + carry)):
-                    carry = [True] * len(carry)
-                    break
-                out = _depends(p["body_jaxpr"], ins[cc:cc + bc] + carry)
-                grown = [a or b for a, b in zip(carry, out)]
-                if grown == carry:
-                    break
-                carry = grown
-            outs = carry
+            carry = _carry_fixpoint(ins[cc + bc:], lambda carry: _depends(p["body_jaxpr"], ins[cc:cc + bc] + carry))
+            # a varying predicate runs every member's loop as long as the longest: all carries vary
+            outs = [True] * len(carry) if any(_depends(p["cond_jaxpr"], ins[:cc] + carry)) else carry
         elif name == "optimization_barrier":
             outs = ins
         elif name == "cond":
